@@ -1,0 +1,20 @@
+# spinecohort: thoracolumbar spine SSM and virtual cohort of hexahedral FE models.
+# The table of contents of the pipeline; every stage lives in workflow/rules/.
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+report: "workflow/report/workflow.rst"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/cohort.smk"
+include: "workflow/rules/ssm.smk"
+
+
+rule all:
+    input:
+        final_outputs(),
+    default_target: True

@@ -1,0 +1,622 @@
+"""Synthetic thoracolumbar spine cohort with ground-truth spinopelvic parameters.
+
+Patient data cannot be shared, so the embedded default input is generated.  Each patient is a triangulated
+surface model of T1-L5 (vertebral bodies with planar endplates; posterior arch with pedicles, laminae,
+spinous, transverse and articular processes), the sacrum with the S1 endplate, the pelvis (iliac wings,
+acetabular rims, pubic and ischial rami) and both femoral heads, in millimetres, frame RAS (x right,
+y anterior, z up).
+
+How the ground truth is known: the generator *places* the geometry.  The pelvis is built around the hip axis
+with the S1 plate at pelvic incidence PI, then rotated about the hip axis by the pelvic tilt PT; the column
+is stacked from S1 upwards by prescribing the sagittal and coronal tilt of every endplate (normal
+``normalize(tan cor, tan sag, 1)``) and the central height of every disc and body.  Every true parameter is
+a sum of imposed angles or an angle of imposed positions, computed here in the construction frame
+(V = +z, A = +y) without any plane or sphere fit, i.e. independently of :mod:`spinecohort.measure`.
+
+Correspondence: every patient is built from the same primitives at the same resolution, so vertex count,
+vertex order and faces are identical across patients (as bi-planar X-ray reconstructions give).  Vertices are
+numbered in order of first use by the face list, so an STL written and read back (merging vertices in
+first-occurrence order) returns the same point order.
+
+Smooth shape noise (random Gaussian bumps) perturbs the posterior elements, the pelvis, the sacrum below its
+plate and the vertebral-body walls (weighted by sin(pi t) along the body height) but never the endplate
+patches or femoral heads, so the imposed endplate planes and head spheres stay exact.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation, Slerp
+
+from .landmarks import DISCS, LEVELS, Landmarks, disc_name
+from .surfaces import closed_loft, segment_superellipsoid, superellipse_ring, torus, uv_sphere
+
+log = logging.getLogger(__name__)
+
+#: Inclusion criteria of the seed (sign of LL-PI corrected: deformity means PI - LL > 10 deg).
+CRITERIA = {"PI_minus_LL_min_deg": 10.0, "PT_min_deg": 20.0, "SVA_T1_min_mm": 50.0}
+
+
+@dataclass(frozen=True)
+class Resolution:
+    """Point counts of the primitives; the total vertex count per patient follows from them."""
+
+    body_theta: int = 64  # points around a vertebral body / endplate rim (even)
+    body_wall_rings: int = 14  # rings up the body wall, endplate rims included
+    body_cap_rings: int = 6  # inner rings of each endplate patch
+    part_theta: int = 20  # points around a posterior-element / pelvis primitive
+    part_rings: int = 11
+    pelvis_theta: int = 32
+    pelvis_rings: int = 17
+    sacrum_theta: int = 64
+    sacrum_rings: int = 30
+    head_theta: int = 48
+    head_rings: int = 23
+
+
+RESOLUTIONS: dict[str, Resolution] = {
+    "coarse": Resolution(24, 6, 3, 10, 5, 14, 7, 24, 12, 20, 9),
+    "default": Resolution(),
+    "fine": Resolution(128, 28, 12, 40, 21, 64, 33, 128, 60, 96, 47),
+}
+
+# Level-wise anatomy (T1..L5 index 0..16), linearly interpolated between knots; adult male sizes in mm,
+# in the published ranges (bodies and discs growing caudally).
+_KNOTS = np.array([0.0, 11.0, 16.0])  # T1, T12, L5
+
+
+def _interp(values: tuple[float, float, float], idx: np.ndarray | float) -> np.ndarray:
+    return np.interp(idx, _KNOTS, values)
+
+
+LEVEL_IDX = np.arange(len(LEVELS), dtype=float)
+BODY_HALF_WIDTH = _interp((14.0, 20.0, 25.0), LEVEL_IDX)
+BODY_HALF_DEPTH = _interp((9.0, 14.5, 17.5), LEVEL_IDX)
+BODY_HEIGHT = np.array([14, 15, 16, 17, 18, 18.5, 19, 20, 21, 21.5, 22, 23, 25, 26, 27, 27, 27], float)
+#: Central disc heights T1-T2 ... L5-S1 (healthy; patients get a degeneration factor).
+DISC_HEIGHT = np.array([4.0, 4.2, 4.4, 4.6, 4.8, 5.0, 5.2, 5.4, 5.7, 6.0, 6.5, 7.0, 8.5, 9.5, 10.5, 11.0, 10.0])
+S1_HALF_WIDTH, S1_HALF_DEPTH = 24.0, 17.0
+ENDPLATE_EXPONENT = 2.6  # superellipse exponent: rounded-rectangle endplates, centrally symmetric
+
+
+@dataclass
+class PatientParameters:
+    """Clinical and size parameters drawn for one patient (degrees, mm)."""
+
+    ID: str
+    age: float
+    sex: str
+    scale: float
+    PI: float
+    PT: float
+    LL: float
+    LDI: float  # percent of LL at L4-S1
+    TK_T4T12: float
+    TK_T1T4: float
+    TL_junction: float  # T12-L1 disc wedge, + kyphotic
+    cobb: float  # imposed main coronal curve, deg
+    cobb_upper: int  # level index of upper end vertebra (0 = T1)
+    cobb_lower: int
+    cobb_sign: int  # +1: superior endplate of upper end vertebra tilted right
+    disc_factor: np.ndarray  # (17,) multiplies DISC_HEIGHT
+    fh_radius: float
+    hip_width: float  # inter femoral-head-centre distance
+    pelvic_radius: float  # hip axis to S1 midpoint
+    axial_rotation_deg: float  # rigid placement of the whole patient about z
+    translation: np.ndarray  # (3,) rigid placement, mm
+
+    @property
+    def SS(self) -> float:
+        return self.PI - self.PT
+
+
+def draw_patient(rng: np.random.Generator, pid: str) -> PatientParameters:
+    """One candidate patient of an adult-spine-deformity cohort (inclusion is checked by the caller)."""
+    sex = "F" if rng.random() < 0.5 else "M"
+    scale = rng.normal(0.94 if sex == "F" else 1.0, 0.04)
+    pi = float(np.clip(rng.normal(58.0, 9.0), 38.0, 85.0))
+    pt = float(np.clip(rng.normal(27.0, 6.0), 12.0, pi - 12.0))
+    mismatch = rng.normal(20.0, 8.0)
+    ll = float(np.clip(pi - mismatch, 4.0, 75.0))
+    span_half = int(rng.integers(2, 4))
+    apex = int(rng.integers(6, 15))  # T7 .. L3
+    return PatientParameters(
+        ID=pid,
+        age=float(rng.uniform(50.0, 75.0)),
+        sex=sex,
+        scale=float(scale),
+        PI=pi,
+        PT=pt,
+        LL=ll,
+        LDI=float(np.clip(rng.normal(66.0, 10.0), 40.0, 92.0)),
+        TK_T4T12=float(np.clip(rng.normal(34.0, 11.0), 10.0, 70.0)),
+        TK_T1T4=float(np.clip(rng.normal(6.0, 3.0), 0.0, 14.0)),
+        TL_junction=float(rng.normal(3.0, 3.0)),
+        cobb=float(rng.uniform(4.0, 40.0)),
+        cobb_upper=max(apex - span_half - int(rng.integers(0, 2)), 1),
+        cobb_lower=min(apex + span_half, 16),
+        cobb_sign=int(rng.choice([-1, 1])),
+        disc_factor=rng.uniform(0.75, 1.0) * rng.normal(1.0, 0.06, size=17),
+        fh_radius=float(rng.normal(23.5 if sex == "F" else 25.0, 1.2) * scale),
+        hip_width=float(rng.normal(160.0, 8.0) * scale),
+        pelvic_radius=float(rng.normal(115.0, 7.0) * scale),
+        axial_rotation_deg=float(rng.uniform(-8.0, 8.0)),
+        translation=rng.normal(0.0, 15.0, size=3),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The column as a chain of endplates.  Position p (0..34): 0 = S1 superior; vertebra i (0 = L5 ... 16 = T1)
+# has its inferior endplate at 1 + 2i and superior at 2 + 2i.  Joint j links p = j to j + 1: even j is the
+# disc below vertebra j/2, odd j the body of vertebra (j-1)/2.
+N_POS = 35
+
+
+def _vertebra_from_bottom(level_index: int) -> int:
+    """Level index (0 = T1 ... 16 = L5) -> chain vertebra index (0 = L5 ... 16 = T1)."""
+    return 16 - level_index
+
+
+def pos_sup(level_index: int) -> int:
+    return 2 + 2 * _vertebra_from_bottom(level_index)
+
+
+def pos_inf(level_index: int) -> int:
+    return 1 + 2 * _vertebra_from_bottom(level_index)
+
+
+def sagittal_joint_angles(p: PatientParameters) -> np.ndarray:
+    """(34,) increase of the sagittal endplate tilt across each joint going cranially, deg.
+
+    Lordosis makes the tilt decrease cranially; kyphosis makes it increase.
+    """
+    d = np.zeros(N_POS - 1)
+    l4s1 = p.LL * p.LDI / 100.0
+    upper = p.LL - l4s1
+    # L5-S1 and L4-L5 segments carry L4-S1 lordosis (58/42 %), the disc 75 % of each segment.
+    for vert, share, disc_share in ((0, 0.58, 0.75), (1, 0.42, 0.75)):
+        seg = l4s1 * share
+        d[2 * vert] = -seg * disc_share
+        d[2 * vert + 1] = -seg * (1 - disc_share)
+    for vert, share in ((2, 0.45), (3, 0.33), (4, 0.22)):  # L3, L2, L1 segments
+        seg = upper * share
+        d[2 * vert] = -seg * 0.7
+        d[2 * vert + 1] = -seg * 0.3
+    d[10] = p.TL_junction  # T12-L1 disc
+    # T4-T12 kyphosis over joints 11 (T12 body) .. 27 (T4 body): smooth profile peaking mid-thorax,
+    # vertebral wedging slightly larger than disc wedging.
+    j = np.arange(11, 28)
+    w = np.sin(np.pi * (j - 10) / 18.0) * np.where(j % 2 == 1, 1.2, 1.0)
+    d[11:28] = p.TK_T4T12 * w / w.sum()
+    d[28:34] = p.TK_T1T4 / 6.0
+    return d
+
+
+def coronal_endplate_tilts(p: PatientParameters) -> np.ndarray:
+    """(35,) coronal tilt of every endplate, deg, positive tilted to the right.
+
+    Linear from +C/2 (superior endplate of the upper end vertebra) to -C/2 (inferior endplate of the lower
+    end vertebra), returning linearly to 0 at S1 below and over four levels above: the main curve is C.
+    """
+    half = 0.5 * p.cobb * p.cobb_sign
+    top, bottom = pos_sup(p.cobb_upper), pos_inf(p.cobb_lower)
+    phi = np.zeros(N_POS)
+    pos = np.arange(N_POS)
+    inside = (pos >= bottom) & (pos <= top)
+    phi[inside] = -half + (pos[inside] - bottom) * (2 * half) / (top - bottom)
+    below = pos < bottom
+    phi[below] = -half * pos[below] / bottom if bottom > 0 else 0.0
+    above = pos > top
+    phi[above] = half * np.clip(1.0 - (pos[above] - top) / 8.0, 0.0, 1.0)
+    return phi
+
+
+def endplate_normal(sag_deg: np.ndarray, cor_deg: np.ndarray) -> np.ndarray:
+    """Unit normal (..., 3) whose sagittal and coronal projected tilts are exactly the given angles."""
+    n = np.stack([np.tan(np.radians(cor_deg)), np.tan(np.radians(sag_deg)), np.ones_like(sag_deg)], -1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def endplate_frame(normal: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation whose columns are lateral, anterior and the normal (no axial rotation)."""
+    ex = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+    ex /= np.linalg.norm(ex)
+    return np.stack([ex, np.cross(normal, ex), normal], axis=1)
+
+
+def rot_x(angle_deg: float) -> np.ndarray:
+    """Rotation about +x (the medio-lateral axis); positive tilts +z towards -y (posteriorly)."""
+    a = np.radians(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+@dataclass
+class Chain:
+    sag: np.ndarray  # (35,) sagittal endplate tilts, deg
+    cor: np.ndarray  # (35,) coronal endplate tilts, deg
+    normals: np.ndarray  # (35, 3)
+    centres: np.ndarray  # (35, 3) endplate centres, mm
+    frames: np.ndarray  # (35, 3, 3)
+    lengths: np.ndarray  # (34,) central heights of the joints (discs and bodies), mm
+
+
+def build_chain(p: PatientParameters) -> Chain:
+    """Stack the column on the S1 plate of the tilted pelvis."""
+    sag = p.SS + np.concatenate([[0.0], np.cumsum(sagittal_joint_angles(p))])
+    cor = coronal_endplate_tilts(p)
+    normals = endplate_normal(sag, cor)
+    frames = np.stack([endplate_frame(n) for n in normals])
+    lengths = np.empty(N_POS - 1)
+    lengths[0::2] = (DISC_HEIGHT * p.disc_factor)[::-1] * p.scale  # disc below L5 first
+    lengths[1::2] = BODY_HEIGHT[::-1] * p.scale
+    centres = np.empty((N_POS, 3))
+    centres[0] = rot_x(p.PT) @ np.array([0.0, 0.0, p.pelvic_radius])
+    for j in range(N_POS - 1):
+        m = normals[j] + normals[j + 1]
+        centres[j + 1] = centres[j] + lengths[j] * m / np.linalg.norm(m)
+    return Chain(sag, cor, normals, centres, frames, lengths)
+
+
+def _sag(v: np.ndarray) -> float:
+    """Sagittal inclination in the construction frame (A = +y, V = +z), deg."""
+    return float(np.degrees(np.arctan2(v[1], v[2])))
+
+
+def true_parameters(p: PatientParameters, chain: Chain, s1_rim: np.ndarray) -> dict[str, float | str]:
+    """Every parameter the generator imposed, in the construction frame (before rigid placement).
+
+    s1_rim: (K, 3) rim vertices of the constructed S1 plate (their most posterior one is the S1
+    posterosuperior corner).
+    """
+    th = {lv: (chain.sag[pos_sup(i)], chain.sag[pos_inf(i)]) for i, lv in enumerate(LEVELS)}
+    ss = chain.sag[0]
+    ll = ss - th["L1"][0]
+    ll_l4s1 = ss - th["L4"][0]
+    s1mid = chain.centres[0]
+    bc = {lv: 0.5 * (chain.centres[pos_sup(i)] + chain.centres[pos_inf(i)]) for i, lv in enumerate(LEVELS)}
+    c7 = 2 * bc["T1"] - bc["T2"]
+    s1ps = s1_rim[np.argmin(s1_rim[:, 1])]
+    gt = p.PT + _sag(c7 - s1mid)
+    out: dict[str, float | str] = {
+        "PI": p.PI,
+        "PT": p.PT,
+        "SS": ss,
+        "LL": ll,
+        "LL_L4S1": ll_l4s1,
+        "LL_L1L5": th["L5"][1] - th["L1"][0],
+        "PI_minus_LL": p.PI - ll,
+        "LL_minus_PI": ll - p.PI,
+        "GT": gt,
+        "GT_T1": p.PT + _sag(bc["T1"] - s1mid),
+        "T1SPI": _sag(bc["T1"]),  # hip axis at the origin
+        "TPA": p.PT + _sag(bc["T1"]),
+        "TK_T1T12": th["T1"][0] - th["T12"][1],
+        "TK_T4T12": th["T4"][0] - th["T12"][1],
+        "TK_T5T12": th["T5"][0] - th["T12"][1],
+        "SVA_T1": float(bc["T1"][1] - s1ps[1]),
+        "SVA_C7est": float(c7[1] - s1ps[1]),
+    }
+    # Coronal Cobb by its definition over the imposed tilts (upper end vertebra i <= lower j).
+    phis = np.array([chain.cor[pos_sup(i)] for i in range(17)])
+    phii = np.array([chain.cor[pos_inf(i)] for i in range(17)])
+    diff = np.abs(phis[:, None] - phii[None, :])
+    diff[np.tril_indices(17, -1)] = -1.0
+    i, j = np.unravel_index(np.argmax(diff), diff.shape)
+    out.update({"Cobb": float(diff[i, j]), "Cobb_upper": LEVELS[i], "Cobb_lower": LEVELS[j]})
+    for k, (upper, lower) in enumerate(DISCS):
+        out[f"DH_{disc_name(upper, lower)}"] = float(chain.lengths[2 * (16 - k)])
+    out.update(
+        {
+            "FH_radius_L": p.fh_radius,
+            "FH_radius_R": p.fh_radius,
+            "HA_width": p.hip_width,
+            "RPV": ss - (0.59 * p.PI + 9.0),
+            "RLL": ll - (0.62 * p.PI + 29.0),
+            "LDI": 100.0 * ll_l4s1 / ll,
+            "RSA": gt - (0.48 * p.PI - 15.0),
+        }
+    )
+    return out
+
+
+def meets_criteria(truth: dict, criteria: dict = CRITERIA) -> bool:
+    return (
+        truth["PI_minus_LL"] > criteria["PI_minus_LL_min_deg"]
+        and truth["PT"] > criteria["PT_min_deg"]
+        and truth["SVA_T1"] > criteria["SVA_T1_min_mm"]
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Mesh assembly
+
+
+@dataclass
+class _Builder:
+    """Accumulates closed components with part labels, noise weights and landmark index sets."""
+
+    part_names: list[str] = field(default_factory=list)
+    verts: list[np.ndarray] = field(default_factory=list)
+    faces: list[np.ndarray] = field(default_factory=list)
+    labels: list[np.ndarray] = field(default_factory=list)
+    weights: list[np.ndarray] = field(default_factory=list)
+    count: int = 0
+    sets: dict = field(default_factory=dict)
+
+    def add(self, part: str, verts: np.ndarray, faces: np.ndarray, weight: np.ndarray | float = 1.0) -> int:
+        if part not in self.part_names:
+            self.part_names.append(part)
+        start = self.count
+        self.verts.append(verts)
+        self.faces.append(faces + start)
+        self.labels.append(np.full(len(verts), self.part_names.index(part), np.int16))
+        self.weights.append(np.broadcast_to(np.asarray(weight, float), (len(verts),)).copy())
+        self.count += len(verts)
+        return start
+
+
+def _body(b: _Builder, level: int, chain: Chain, scale: float, res: Resolution) -> None:
+    lv = LEVELS[level]
+    bottom, top = pos_inf(level), pos_sup(level)
+    ring = superellipse_ring(BODY_HALF_WIDTH[level] * scale, BODY_HALF_DEPTH[level] * scale,
+                             res.body_theta, ENDPLATE_EXPONENT)
+    t = np.linspace(0.0, 1.0, res.body_wall_rings)
+    rots = Slerp([0.0, 1.0], Rotation.from_matrix(chain.frames[[bottom, top]]))(t).as_matrix()
+    centres = chain.centres[bottom] + t[:, None] * (chain.centres[top] - chain.centres[bottom])
+    waist = 1.0 - 0.07 * np.sin(np.pi * t)  # bodies are narrower at mid-height
+    local = np.concatenate([ring[None] * waist[:, None, None], np.zeros((len(t), len(ring), 1))], axis=2)
+    rings = centres[:, None, :] + np.einsum("rij,rtj->rti", rots, local)
+    v, f, info = closed_loft(rings, bottom_cap_rings=res.body_cap_rings, top_cap_rings=res.body_cap_rings)
+    w = np.zeros(len(v))
+    w[info["wall"].ravel()] = np.repeat(np.sin(np.pi * t), len(ring))
+    s = b.add(f"body_{lv}", v, f, w)
+    b.sets.setdefault("endplate_inf", {})[lv] = s + info["bottom_cap"]
+    b.sets.setdefault("endplate_sup", {})[lv] = s + info["top_cap"]
+    b.sets.setdefault("rim_inf", {})[lv] = s + info["bottom_rim"]
+    b.sets.setdefault("rim_sup", {})[lv] = s + info["top_rim"]
+    b.sets.setdefault("body", {})[lv] = s + np.arange(len(v))
+
+
+def _posterior(b: _Builder, level: int, chain: Chain, scale: float, res: Resolution) -> None:
+    """Pedicles, laminae, spinous and transverse processes, articular processes of one vertebra."""
+    lv = LEVELS[level]
+    i = float(level)
+    bottom, top = pos_inf(level), pos_sup(level)
+    centre = 0.5 * (chain.centres[bottom] + chain.centres[top])
+    rot = Slerp([0.0, 1.0], Rotation.from_matrix(chain.frames[[bottom, top]]))(0.5).as_matrix()
+    lumbar = level >= 12
+    s = scale
+    bd = BODY_HALF_DEPTH[level] * s
+    h = BODY_HEIGHT[level] * s
+    cw = _interp((8.0, 9.0, 12.0), i) * s  # canal half width
+    cd = _interp((14.0, 15.0, 16.0), i) * s  # canal depth
+    pr = _interp((3.0, 4.0, 5.5), i) * s  # pedicle radius
+    pl = _interp((9.0, 10.0, 12.0), i) * s
+    sl = _interp((38.0, 35.0, 30.0), i) * s
+    sh = _interp((4.0, 7.0, 12.0), i) * s
+    tl = _interp((22.0, 12.0, 18.0), i) * s
+    incl = np.radians(np.interp(i, [0, 7, 11, 16], [35, 60, 30, 10]))
+    up = np.array([0.0, 0.0, 1.0])
+    ant = np.array([0.0, 1.0, 0.0])
+    xp = cw + pr
+    yl = -bd - pl  # pedicle-lamina junction
+    ys = yl - 0.8 * cd  # lamina junction at the midline
+    spin_end = np.array([0.0, ys - sl * np.cos(incl), -1.0 - sl * np.sin(incl)])
+    parts = [
+        # (p0, p1, half_width, half_thickness, up_hint) in the vertebra's mid-height frame
+        ((np.array([0.0, ys, -1.0]), spin_end, sh, 2.8, up)),
+    ]
+    for sgn in (-1.0, 1.0):
+        parts += [
+            (np.array([sgn * xp, -bd + 1.0, 0.0]), np.array([sgn * xp, yl, 0.0]), 1.4 * pr, pr, up),
+            (np.array([sgn * xp, yl, 0.0]), np.array([0.0, ys, -1.0]), 0.45 * h, 2.5, up),
+            (np.array([sgn * xp, yl, 1.0]),
+             np.array([sgn * (xp + tl), yl - (0.1 if lumbar else 0.35) * tl, 3.0]), 4.0 * s, 3.0 * s, up),
+            (np.array([sgn * xp, yl - 1.0, 0.3 * h]), np.array([sgn * xp, yl - 3.0, 0.5 * h + 6.0 * s]),
+             4.0 * s, 3.0 * s, ant),
+            (np.array([sgn * (xp - 1.0), yl - 0.4 * cd, -0.3 * h]),
+             np.array([sgn * (xp - 1.0), yl - 0.4 * cd - 2.0, -0.5 * h - 6.0 * s]), 4.0 * s, 3.0 * s, ant),
+        ]
+    for p0, p1, hw, ht, hint in parts:
+        v, f = segment_superellipsoid(p0, p1, hw, ht, hint, res.part_theta, res.part_rings)
+        b.add(f"posterior_{lv}", centre + v @ rot.T, f, 1.0)
+
+
+def _sacrum(b: _Builder, p: PatientParameters, chain: Chain, res: Resolution) -> None:
+    """Lofted sacrum: S1 plate on top, alae just below it, curving anteriorly to the apex."""
+    s = p.scale
+    frame, c0 = chain.frames[0], chain.centres[0]
+    ex, ey, ez = frame[:, 0], frame[:, 1], frame[:, 2]
+    arc_knots = np.array([0.0, 2.5, 15.0, 35.0, 55.0, 75.0, 95.0]) * s
+    a_knots = np.array([S1_HALF_WIDTH, 54.0, 52.0, 42.0, 30.0, 20.0, 10.0]) * s
+    b_knots = np.array([S1_HALF_DEPTH, 24.0, 26.0, 22.0, 15.0, 10.0, 6.0]) * s
+    arc = np.concatenate([arc_knots[:2], np.linspace(arc_knots[2], arc_knots[-1], res.sacrum_rings - 2)])
+    kappa = np.radians(50.0) / (105.0 * s)
+    ks = kappa * arc
+    centre = c0 - (np.sin(ks) / kappa)[:, None] * ez + ((1 - np.cos(ks)) / kappa)[:, None] * ey
+    ring_y = np.cos(ks)[:, None] * ey + np.sin(ks)[:, None] * ez
+    a = np.interp(arc, arc_knots, a_knots)
+    bb = np.interp(arc, arc_knots, b_knots)
+    unit = superellipse_ring(1.0, 1.0, res.sacrum_theta, ENDPLATE_EXPONENT)
+    rings = (centre[:, None, :] + (a[:, None] * unit[None, :, 0])[..., None] * ex
+             + (bb[:, None] * unit[None, :, 1])[..., None] * ring_y[:, None, :])
+    rings = rings[::-1]  # bottom (apex end) first, S1 plate last
+    apex_arc = 105.0 * s
+    apex = c0 - np.sin(kappa * apex_arc) / kappa * ez + (1 - np.cos(kappa * apex_arc)) / kappa * ey
+    v, f, info = closed_loft(rings, bottom_apex=apex, top_cap_rings=res.body_cap_rings)
+    w = np.ones(len(v))
+    w[info["top_cap"]] = 0.0
+    w[info["wall"][-2:].ravel()] = 0.0  # the plate's rim and the alae shoulder stay exact
+    start = b.add("sacrum", v, f, w)
+    b.sets.setdefault("endplate_sup", {})["S1"] = start + info["top_cap"]
+    b.sets.setdefault("rim_sup", {})["S1"] = start + info["top_rim"]
+
+
+def _pelvis(b: _Builder, p: PatientParameters, res: Resolution) -> None:
+    """Hemipelves built around the hip axis (origin) in the PT = 0 orientation, then tilted by PT."""
+    s, w, r = p.scale, 0.5 * p.hip_width, p.fh_radius
+    rot = rot_x(p.PT)
+    up = np.array([0.0, 0.0, 1.0])
+    symphysis = []
+    for sgn in (-1.0, 1.0):
+        head = np.array([sgn * w, 0.0, 0.0])
+        axis = np.array([sgn * 1.0, 0.3, -0.55])
+        axis /= np.linalg.norm(axis)
+        minor = 4.5 * s
+        offset = 0.35 * r
+        major = np.sqrt((r + minor + 1.0) ** 2 - offset**2)
+        v, f = torus(head + offset * axis, axis, major, minor, 2 * res.pelvis_theta, max(res.part_theta // 2, 6))
+        b.add("pelvis", v @ rot.T, f)
+        segs = [
+            # superior pubic ramus from the symphysis (p0) to the acetabulum: its first rings are the
+            # symphysis patch
+            ((sgn * 6 * s, 58 * s, -28 * s), (sgn * (w - 12 * s), 22 * s, -5 * s), 8 * s, 6 * s, up),
+            ((sgn * 6 * s, 55 * s, -45 * s), (sgn * (w - 25 * s), -10 * s, -62 * s), 9 * s, 6 * s, up),
+            ((sgn * (w - 25 * s), -10 * s, -62 * s), (sgn * (w - 8 * s), -15 * s, -20 * s), 10 * s, 8 * s, up),
+            ((sgn * (w - 2 * s), -8 * s, r + 6 * s), (sgn * (w + 8 * s), -20 * s, 70 * s), 14 * s, 9 * s,
+             np.array([0.0, 1.0, 0.0])),
+            ((sgn * 55 * s, -35 * s, 105 * s), (sgn * (w + 35 * s), 45 * s, 90 * s), 28 * s, 4.5 * s,
+             np.array([sgn * 0.5, 0.0, 1.0])),
+        ]
+        for k, (p0, p1, hw, ht, hint) in enumerate(segs):
+            v, f = segment_superellipsoid(np.array(p0), np.array(p1), hw, ht, hint,
+                                          res.pelvis_theta, res.pelvis_rings)
+            start = b.add("pelvis", v @ rot.T, f)
+            if k == 0:
+                # bottom apex (index n_rings * n_theta) and the first ring sit at the symphyseal end
+                n = res.pelvis_rings * res.pelvis_theta
+                symphysis.append(start + np.concatenate([np.arange(res.pelvis_theta), [n]]))
+    b.sets["pubic_symphysis"] = np.concatenate(symphysis)
+
+
+def build_patient_mesh(
+    p: PatientParameters, res: Resolution, noise_mm: float = 0.8, noise_width_mm: float = 25.0,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray, Landmarks, dict]:
+    """Vertices (N, 3) mm in the patient's own (placed) frame, faces (F, 3), landmarks, ground truth."""
+    chain = build_chain(p)
+    b = _Builder()
+    for level in range(len(LEVELS)):
+        _body(b, level, chain, p.scale, res)
+    for level in range(len(LEVELS)):
+        _posterior(b, level, chain, p.scale, res)
+    _sacrum(b, p, chain, res)
+    _pelvis(b, p, res)
+    fh = {}
+    for side, sgn in (("L", -1.0), ("R", 1.0)):
+        v, f = uv_sphere(np.array([sgn * 0.5 * p.hip_width, 0.0, 0.0]), p.fh_radius, res.head_theta, res.head_rings)
+        start = b.add(f"femoral_head_{side}", v, f, 0.0)
+        fh[side] = start + np.arange(len(v))
+    verts = np.concatenate(b.verts)
+    faces = np.concatenate(b.faces)
+    weights = np.concatenate(b.weights)
+    truth = true_parameters(p, chain, verts[b.sets["rim_sup"]["S1"]])
+
+    if rng is not None and noise_mm > 0:
+        verts = verts + weights[:, None] * smooth_noise(verts, rng, noise_mm, noise_width_mm)
+
+    # Rigid placement: rotation about the vertical and translation keep every parameter unchanged.
+    placement = Rotation.from_euler("z", p.axial_rotation_deg, degrees=True).as_matrix()
+    verts = verts @ placement.T + p.translation
+
+    # Number vertices by first use in the face list so that an STL round trip preserves the order.
+    order = first_use_order(faces, len(verts))
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
+    verts = verts[order]
+    faces = inverse[faces]
+    part = np.concatenate(b.labels)[order]
+
+    def remap(idx):
+        return np.sort(inverse[idx])
+
+    lm = Landmarks(
+        part=part,
+        part_names=tuple(b.part_names),
+        endplate_sup={k: remap(v) for k, v in b.sets["endplate_sup"].items()},
+        endplate_inf={k: remap(v) for k, v in b.sets["endplate_inf"].items()},
+        rim_sup={k: remap(v) for k, v in b.sets["rim_sup"].items()},
+        rim_inf={k: remap(v) for k, v in b.sets["rim_inf"].items()},
+        femoral_head={k: remap(v) for k, v in fh.items()},
+        body={k: remap(v) for k, v in b.sets["body"].items()},
+        pubic_symphysis=remap(b.sets["pubic_symphysis"]),
+        meta={"generator": "spinecohort.synthetic", "resolution": asdict(res)},
+    )
+    return verts, faces, lm, truth
+
+
+def first_use_order(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Vertex indices in order of their first appearance in ``faces.ravel()``; all must appear."""
+    flat = faces.ravel()
+    uniq, first = np.unique(flat, return_index=True)
+    if len(uniq) != n_vertices:
+        raise ValueError(f"{n_vertices - len(uniq)} vertices are used by no face")
+    return uniq[np.argsort(first)]
+
+
+def smooth_noise(points: np.ndarray, rng: np.random.Generator, amplitude_mm: float, width_mm: float,
+                 n_bumps: int = 60) -> np.ndarray:
+    """A smooth random displacement field: Gaussian bumps with random centres and vector amplitudes."""
+    lo, hi = points.min(0), points.max(0)
+    centres = rng.uniform(lo, hi, size=(n_bumps, 3))
+    amps = rng.normal(0.0, amplitude_mm, size=(n_bumps, 3))
+    out = np.zeros_like(points)
+    for c, a in zip(centres, amps):  # 60 bumps: a loop over bumps, each one array operation over points
+        out += np.exp(-np.sum((points - c) ** 2, axis=1) / (2 * width_mm**2))[:, None] * a
+    return out
+
+
+@dataclass
+class SyntheticCohort:
+    ids: list[str]
+    vertices: np.ndarray  # (P, N, 3)
+    faces: np.ndarray  # (F, 3)
+    landmarks: Landmarks
+    table: pd.DataFrame  # one row per patient: ID, age, sex, true parameters
+    n_candidates: int
+
+
+def generate_cohort(
+    n_patients: int = 42, seed: int = 20240549, resolution: str | Resolution = "default",
+    noise_mm: float = 0.8, criteria: dict = CRITERIA, max_candidates: int = 100000,
+    progress=None,
+) -> SyntheticCohort:
+    """Draw patients until ``n_patients`` meet the inclusion criteria; build their meshes."""
+    res = RESOLUTIONS[resolution] if isinstance(resolution, str) else resolution
+    rng = np.random.default_rng(seed)
+    accepted: list[tuple[PatientParameters, np.random.Generator]] = []
+    n_cand = 0
+    while len(accepted) < n_patients:
+        if n_cand >= max_candidates:
+            raise RuntimeError(f"only {len(accepted)} of {max_candidates} candidates met the criteria {criteria}")
+        n_cand += 1
+        p = draw_patient(rng, f"P{len(accepted) + 1:02d}")
+        truth = true_parameters(p, build_chain(p), _s1_rim_only(p))
+        if meets_criteria(truth, criteria):
+            accepted.append((p, np.random.default_rng(rng.integers(2**63))))
+    verts, rows, faces0, lm0 = [], [], None, None
+    for k, (p, noise_rng) in enumerate(accepted):
+        v, f, lm, truth = build_patient_mesh(p, res, noise_mm=noise_mm, rng=noise_rng)
+        if faces0 is None:
+            faces0, lm0 = f, lm
+        elif not np.array_equal(f, faces0):
+            raise AssertionError("generator broke correspondence: faces differ between patients")
+        verts.append(v)
+        rows.append({"ID": p.ID, "age": round(p.age, 1), "sex": p.sex, **truth})
+        if progress is not None:
+            progress(k + 1, len(accepted))
+    table = pd.DataFrame(rows)
+    log.info("accepted %d of %d candidates (%.0f %%)", n_patients, n_cand, 100 * n_patients / n_cand)
+    return SyntheticCohort([p.ID for p, _ in accepted], np.stack(verts), faces0, lm0, table, n_cand)
+
+
+def _s1_rim_only(p: PatientParameters) -> np.ndarray:
+    """The S1 plate rim of a candidate without building its mesh (for the inclusion check)."""
+    chain = build_chain(p)
+    ring = superellipse_ring(S1_HALF_WIDTH * p.scale, S1_HALF_DEPTH * p.scale, 64, ENDPLATE_EXPONENT)
+    return chain.centres[0] + np.c_[ring, np.zeros(len(ring))] @ chain.frames[0].T

@@ -1,0 +1,20 @@
+import subprocess
+import sys
+
+from spinecohort.cli import main
+
+
+def test_generate_check_and_info(tmp_path, capsys):
+    out = tmp_path / "cohort"
+    assert main(["generate-cohort", str(out), "--n", "3", "--resolution", "coarse", "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["P01.stl", "P02.stl", "P03.stl", "landmarks.json", "patients.csv"]
+    assert main(["check-cohort", str(out)]) == 0
+    assert "3 patients, 16716 vertices" in capsys.readouterr().out
+
+
+def test_input_errors_are_one_line_messages(tmp_path):
+    (tmp_path / "a.stl").write_bytes(b"")
+    proc = subprocess.run([sys.executable, "-m", "spinecohort.cli", "check-cohort", str(tmp_path)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "error:" in proc.stderr and "Traceback" not in proc.stderr

@@ -1,0 +1,86 @@
+"""The Snakemake DAG end to end on the test configuration, and its behaviour on bad input."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SNAKEMAKE = [sys.executable, "-m", "snakemake"]
+
+
+def run(workdir, *args):
+    return subprocess.run([*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "-j2", *args],
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def test_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("dag")
+    shutil.copytree(ROOT / ".test" / "config", work / "config")
+    proc = run(work)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return work
+
+
+def test_dag_produces_every_stage_output(test_run):
+    r = test_run / "results"
+    assert len(list((r / "synthetic_cohort").glob("P*.stl"))) == 8
+    with np.load(r / "ssm" / "ssm.npz") as z:
+        assert z["eigenvalues"].shape == (7,)  # 8 patients -> 7 modes
+        n = int(z["modes_for_threshold"])
+    comp = pd.read_csv(r / "ssm" / "compactness.csv")
+    assert comp["cumulative_variance"].iloc[-1] == pytest.approx(1.0)
+    assert comp["cumulative_variance"].iloc[n - 1] >= 0.95 > (comp["cumulative_variance"].iloc[n - 2] if n > 1 else 0)
+    q = pd.read_csv(r / "ssm" / "quality.csv")
+    assert list(q.columns) == ["modes", "generalization_mm", "generalization_sd_mm", "specificity_mm", "specificity_sd_mm"]
+    for png in ("ssm/compactness.png", "ssm/quality.png", "figures/mode_variation.png"):
+        data = (r / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, png
+    for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure"):
+        assert (test_run / "logs" / f"{rule}.log").exists()
+        assert (r / "benchmarks" / f"{rule}.tsv").exists()
+
+
+def test_nothing_to_do_on_rerun(test_run):
+    proc = run(test_run, "-n")
+    assert proc.returncode == 0 and "Nothing to be done" in proc.stdout + proc.stderr
+
+
+def test_broken_user_stl_fails_with_the_file_named_and_no_output(test_run, tmp_path):
+    folder = tmp_path / "mine"
+    shutil.copytree(test_run / "results" / "synthetic_cohort", folder)
+    (folder / "P05.stl").write_bytes((folder / "P05.stl").read_bytes()[:1000])
+    work = tmp_path / "work"
+    (work / "config").mkdir(parents=True)
+    cfg = yaml.safe_load((ROOT / ".test" / "config" / "config.yaml").read_text())
+    cfg["cohort"].update(source="folder", folder=str(folder))
+    (work / "config" / "config.yaml").write_text(yaml.safe_dump(cfg))
+    proc = run(work)
+    assert proc.returncode != 0
+    log = (work / "logs" / "validate_cohort.log").read_text()
+    assert "P05.stl: binary STL header announces" in log
+    assert not (work / "results" / "cohort" / "cohort.npz").exists()
+
+
+def test_bad_config_is_rejected_before_any_rule(tmp_path):
+    work = tmp_path / "work"
+    (work / "config").mkdir(parents=True)
+    cfg = yaml.safe_load((ROOT / ".test" / "config" / "config.yaml").read_text())
+    cfg["ssm"]["variance_threshold"] = 1.5
+    (work / "config" / "config.yaml").write_text(yaml.safe_dump(cfg))
+    proc = run(work)
+    assert proc.returncode != 0
+    assert "ssm.variance_threshold: 1.5 is greater than the maximum of 1" in proc.stderr + proc.stdout
+    assert not (work / "results").exists()
+
+
+def test_lint_is_clean():
+    proc = subprocess.run([*SNAKEMAKE, "--lint", "-s", str(ROOT / "Snakefile"), "--directory", str(ROOT)],
+                          capture_output=True, text=True, timeout=120)
+    assert "Congratulations, your workflow is in a good condition!" in proc.stdout + proc.stderr

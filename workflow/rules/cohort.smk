@@ -1,0 +1,43 @@
+# Stage 1: the patient cohort (embedded synthetic generator or a user STL folder), read and validated.
+
+
+if config["cohort"]["source"] == "synthetic":
+
+    rule synthetic_cohort:
+        output:
+            stls=COHORT["stls"],
+            sheet=COHORT["sheet"],
+            landmarks=COHORT["landmarks"],
+        params:
+            synthetic=config["synthetic"],
+        log:
+            f"{LOGS}/synthetic_cohort.log",
+        benchmark:
+            f"{BENCH}/synthetic_cohort.tsv"
+        threads: 1
+        conda:
+            "../../environment.yml"
+        script:
+            "../scripts/synthetic_cohort.py"
+
+
+rule validate_cohort:
+    input:
+        stls=COHORT["stls"],
+        sheet=COHORT["sheet"],
+        landmarks=COHORT["landmarks"],
+    output:
+        f"{R}/cohort/cohort.npz",
+    params:
+        units=config["cohort"]["units"],
+        degenerate_area_mm2=config["cohort"]["degenerate_area_mm2"],
+        max_degenerate_fraction=config["cohort"]["max_degenerate_fraction"],
+    log:
+        f"{LOGS}/validate_cohort.log",
+    benchmark:
+        f"{BENCH}/validate_cohort.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/validate_cohort.py"

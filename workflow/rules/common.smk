@@ -1,0 +1,26 @@
+# Configuration validation (before any rule runs) and the path helpers every stage uses.
+from pathlib import Path
+
+from spinecohort.config import ConfigError, cohort_files, validate_config
+
+try:
+    validate_config(config, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml")
+except ConfigError as exc:
+    raise WorkflowError(str(exc)) from None
+
+R = config["results"]  # root of every output
+LOGS = config["logs"]
+BENCH = f"{R}/benchmarks"
+COHORT = cohort_files(config)
+
+
+def final_outputs():
+    return [
+        f"{R}/cohort/cohort.npz",
+        f"{R}/ssm/ssm.npz",
+        f"{R}/ssm/compactness.csv",
+        f"{R}/ssm/compactness.png",
+        f"{R}/ssm/quality.csv",
+        f"{R}/ssm/quality.png",
+        f"{R}/figures/mode_variation.png",
+    ]

@@ -1,0 +1,81 @@
+# Stage 2: the statistical shape model: GPA, PCA with compactness, quality measures, figures.
+
+
+rule gpa:
+    input:
+        f"{R}/cohort/cohort.npz",
+    output:
+        f"{R}/ssm/aligned.npz",
+    params:
+        scaling=config["ssm"]["scaling"],
+        tol_mm=config["ssm"]["gpa_tol_mm"],
+        max_iter=config["ssm"]["gpa_max_iter"],
+    log:
+        f"{LOGS}/gpa.log",
+    benchmark:
+        f"{BENCH}/gpa.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/gpa.py"
+
+
+rule pca:
+    input:
+        f"{R}/ssm/aligned.npz",
+    output:
+        ssm=f"{R}/ssm/ssm.npz",
+        table=f"{R}/ssm/compactness.csv",
+        figure=report(f"{R}/ssm/compactness.png", category="SSM", caption="../report/compactness.rst"),
+    params:
+        variance_threshold=config["ssm"]["variance_threshold"],
+    log:
+        f"{LOGS}/pca.log",
+    benchmark:
+        f"{BENCH}/pca.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/pca.py"
+
+
+rule ssm_quality:
+    input:
+        aligned=f"{R}/ssm/aligned.npz",
+        ssm=f"{R}/ssm/ssm.npz",
+    output:
+        table=f"{R}/ssm/quality.csv",
+        figure=report(f"{R}/ssm/quality.png", category="SSM", caption="../report/quality.rst"),
+    params:
+        quality=config["ssm"]["quality"],
+    log:
+        f"{LOGS}/ssm_quality.log",
+    benchmark:
+        f"{BENCH}/ssm_quality.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/ssm_quality.py"
+
+
+rule mode_variation_figure:
+    input:
+        ssm=f"{R}/ssm/ssm.npz",
+        cohort=f"{R}/cohort/cohort.npz",
+    output:
+        report(f"{R}/figures/mode_variation.png", category="SSM", caption="../report/mode_variation.rst"),
+    params:
+        n_modes=config["figures"]["mode_variation_modes"],
+        window=config["figures"]["window"],
+    log:
+        f"{LOGS}/mode_variation_figure.log",
+    benchmark:
+        f"{BENCH}/mode_variation_figure.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/mode_variation_figure.py"
