@@ -42,7 +42,14 @@ def test_dag_produces_every_stage_output(test_run):
     for png in ("ssm/compactness.png", "ssm/quality.png", "figures/mode_variation.png"):
         data = (r / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, png
-    for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure"):
+    # patients measured through the STL round trip recover the generator's truth (float32 storage: 1e-4)
+    comp = pd.read_csv(r / "patients" / "sheet_vs_measured.csv").set_index("parameter")
+    assert comp.loc[["PI", "PT", "SS", "LL", "TPA", "GT", "Cobb", "DH_L4-L5"], "max_abs_diff"].max() < 1e-4
+    sheets = pd.read_excel(r / "Descriptive_List.xlsx", sheet_name=None)
+    assert list(sheets) == ["Patients", "Notes"] and len(sheets["Patients"]) == 8
+    assert {"ID", "age", "PI [deg]", "LDI [%]", "DH_L4-L5 [mm]", "GAP [points]"} <= set(sheets["Patients"].columns)
+    for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
+                 "measure_patients", "descriptive_list"):
         assert (test_run / "logs" / f"{rule}.log").exists()
         assert (r / "benchmarks" / f"{rule}.tsv").exists()
 

@@ -41,6 +41,8 @@ class Landmarks:
     femoral_head: ``"L"`` / ``"R"`` -> indices of the spherical femoral-head surface (neck excluded).
     body: level -> all vertices of the vertebral body (endplates and wall).
     pubic_symphysis: indices of a patch at the pubic symphysis (anterior orientation check).
+    anchors: ligament attachment vertices, name -> (17,) one vertex per level T1..L5 (e.g. ``spinous_tip``,
+        ``tp_tip_L``, ``iap_tip_R``); optional for user cohorts (ligaments need them).
     """
 
     part: np.ndarray
@@ -53,6 +55,7 @@ class Landmarks:
     body: dict[str, np.ndarray]
     pubic_symphysis: np.ndarray
     meta: dict = field(default_factory=dict)
+    anchors: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:
@@ -88,6 +91,7 @@ class Landmarks:
             "femoral_head": self.femoral_head,
             "body": self.body,
             "pubic_symphysis": {"": self.pubic_symphysis},
+            "anchors": self.anchors,
         }
 
     def to_dict(self) -> dict:
@@ -124,6 +128,7 @@ class Landmarks:
             body=sets("body"),
             pubic_symphysis=idx(d["pubic_symphysis"]),
             meta=d.get("meta", {}),
+            anchors={k: idx(v) for k, v in d.get("anchors", {}).items()},
         )
 
     def save(self, path: str | Path) -> None:

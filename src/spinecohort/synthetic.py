@@ -347,6 +347,7 @@ class _Builder:
     weights: list[np.ndarray] = field(default_factory=list)
     count: int = 0
     sets: dict = field(default_factory=dict)
+    anchors: dict = field(default_factory=dict)
 
     def add(self, part: str, verts: np.ndarray, faces: np.ndarray, weight: np.ndarray | float = 1.0) -> int:
         if part not in self.part_names:
@@ -422,9 +423,25 @@ def _posterior(b: _Builder, level: int, chain: Chain, scale: float, res: Resolut
             (np.array([sgn * (xp - 1.0), yl - 0.4 * cd, -0.3 * h]),
              np.array([sgn * (xp - 1.0), yl - 0.4 * cd - 2.0, -0.5 * h - 6.0 * s]), 4.0 * s, 3.0 * s, ant),
         ]
-    for p0, p1, hw, ht, hint in parts:
+    names = ["spinous"] + [f"{k}_{side}" for side in "LR" for k in ("pedicle", "lamina", "tp", "sap", "iap")]
+    n_ring = res.part_rings * res.part_theta
+    mid_ring = (res.part_rings // 2) * res.part_theta
+    for name, (p0, p1, hw, ht, hint) in zip(names, parts):
         v, f = segment_superellipsoid(p0, p1, hw, ht, hint, res.part_theta, res.part_rings)
-        b.add(f"posterior_{lv}", centre + v @ rot.T, f, 1.0)
+        start = b.add(f"posterior_{lv}", centre + v @ rot.T, f, 1.0)
+        # Ligament anchors by topology (identical for every patient): the apexes sit at p0 / p1, the
+        # mid ring's vertices at theta = 90 / 270 deg lie on the +/- up_hint side of the segment.
+        top_apex, mid_up, mid_down = start + n_ring + 1, start + mid_ring + res.part_theta // 4, start + mid_ring + 3 * res.part_theta // 4
+        a = b.anchors
+        if name == "spinous":
+            a.setdefault("spinous_tip", {})[lv] = top_apex
+            a.setdefault("spinous_upper", {})[lv] = mid_up
+            a.setdefault("spinous_lower", {})[lv] = mid_down
+        elif name.startswith("lamina"):
+            a.setdefault(f"lamina_upper_{name[-1]}", {})[lv] = mid_up
+            a.setdefault(f"lamina_lower_{name[-1]}", {})[lv] = mid_down
+        elif name[:3] in ("tp_", "sap", "iap"):
+            a.setdefault(f"{name[:-2]}_tip_{name[-1]}", {})[lv] = top_apex
 
 
 def _sacrum(b: _Builder, p: PatientParameters, chain: Chain, res: Resolution) -> None:
@@ -546,6 +563,7 @@ def build_patient_mesh(
         body={k: remap(v) for k, v in b.sets["body"].items()},
         pubic_symphysis=remap(b.sets["pubic_symphysis"]),
         meta={"generator": "spinecohort.synthetic", "resolution": asdict(res)},
+        anchors={k: inverse[np.array([v[lv] for lv in LEVELS])] for k, v in b.anchors.items()},
     )
     return verts, faces, lm, truth
 

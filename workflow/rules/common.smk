@@ -23,4 +23,6 @@ def final_outputs():
         f"{R}/ssm/quality.csv",
         f"{R}/ssm/quality.png",
         f"{R}/figures/mode_variation.png",
+        f"{R}/patients/parameters.csv",
+        f"{R}/Descriptive_List.xlsx",
     ]

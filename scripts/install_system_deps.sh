@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Install the Debian packages spinecohort needs outside Python (idempotent).
+#   calculix-ccx : the CalculiX solver `ccx` (2.20 on Debian 12), used by spinecohort.calculix to
+#                  check and run the exported .inp decks.
+# Usage: sudo scripts/install_system_deps.sh   (does nothing but report when not root)
+set -euo pipefail
+
+PACKAGES=(calculix-ccx)
+
+missing=()
+for pkg in "${PACKAGES[@]}"; do
+    if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
+        missing+=("$pkg")
+    fi
+done
+
+if [ ${#missing[@]} -eq 0 ]; then
+    echo "install_system_deps: all present (${PACKAGES[*]})"
+    exit 0
+fi
+
+if [ "$(id -u)" -ne 0 ]; then
+    echo "install_system_deps: not root; skipping. Missing: ${missing[*]}" >&2
+    echo "  run: sudo apt-get update && sudo apt-get install -y ${missing[*]}" >&2
+    exit 0
+fi
+
+export DEBIAN_FRONTEND=noninteractive
+apt-get update
+apt-get install -y --no-install-recommends "${missing[@]}"
+echo "install_system_deps: installed ${missing[*]}"

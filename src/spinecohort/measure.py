@@ -1,0 +1,414 @@
+"""Spinopelvic parameters of a batch of spine models, measured on corresponding landmark vertices.
+
+Follows /work/shared/reference/spinopelvic.md (§7 step by step); docs/measurement.md lists every choice.
+Millimetres and degrees throughout.
+
+Pipeline per batch (all array operations over the B models; only the 17 levels / 17 discs are looped):
+
+1. Endplate planes: total-least-squares fit of every endplate patch (batched ``eigh`` of the 3x3
+   covariances, built from raw moments by two BLAS matmuls); normals oriented cranially (n.V > 0); the
+   vertex mean is the endplate centre because the patches are sampled centrally symmetric.
+2. Femoral heads: algebraic sphere fit (batched normal equations on mean-centred points).
+3. Patient frame (§1.1/§7.3): V = the explicit vertical, Lh = horizontal part of cR - cL, A = V x Lh.  If the
+   pubic symphysis lies posterior to the S1 centre, A and Lh are flipped (left/right labels swapped), which makes
+   every output invariant to axial rotation, translation and label swaps.
+4. Signed in-plane angles ``sag(v) = atan2(v.A, v.V)`` and ``cor(v) = atan2(v.Lh, v.V)``, so the identities
+   PI = PT + SS, TPA = PT + T1SPI and GT = PT + C7VT hold for negative terms too.
+
+The batched plane/sphere fits are written here (a few lines each) because scipy/pyvista fit one point set at a
+time; a Python loop over 16,807 models x 35 patches would dominate the run time.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import gap as _gap
+from .landmarks import DISCS, LEVELS, Landmarks, disc_name
+
+C7_PROXIES = ("extrapolated", "T1")
+
+_ANGLE_COLS = [
+    "PI", "PT", "SS", "LL", "LL_L4S1", "LL_L1L5", "PI_minus_LL", "LL_minus_PI", "GT", "GT_T1", "T1SPI", "TPA",
+    "TK_T1T12", "TK_T4T12", "TK_T5T12", "Cobb", "Cobb2", "RPV", "RLL", "RSA", "PI_identity_err",
+]
+_DISC_COLS = [f"{p}_{disc_name(u, l)}" for u, l in DISCS for p in ("DH", "DHa", "DHp")]
+
+#: Unit of every numeric column of :func:`measure` ("" = dimensionless / label).
+UNITS: dict[str, str] = {
+    **{c: "deg" for c in _ANGLE_COLS},
+    "LDI": "%",
+    "SVA_T1": "mm", "SVA_C7est": "mm", "FH_radius_L": "mm", "FH_radius_R": "mm", "HA_width": "mm",
+    "endplate_rms_max": "mm",
+    **{c: "mm" for c in _DISC_COLS},
+    **{c: "points" for c in ("RPV_pts", "RLL_pts", "LDI_pts", "RSA_pts", "Age_pts", "GAP_noage", "GAP",
+                             "GAP_assumed_age")},
+}
+
+
+def parameter_table_header(df: pd.DataFrame) -> pd.DataFrame:
+    """Copy of ``df`` with unit-bearing headers for spreadsheets, e.g. ``"PI [deg]"``, ``"DH_L4-L5 [mm]"``."""
+    return df.rename(columns={c: f"{c} [{UNITS[c]}]" for c in df.columns if UNITS.get(c)})
+
+
+# --------------------------------------------------------------------------------------------- fits
+
+def fit_planes(patch: np.ndarray, vertical: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Total-least-squares planes of a batch of patches.
+
+    patch: (B, K, 3) mm.  Returns centre (B, 3) = vertex mean, unit normal (B, 3) oriented so that
+    normal.vertical > 0, and rms (B,) = out-of-plane RMS residual in mm (sqrt of the smallest eigenvalue of
+    the covariance, equal to S[-1]/sqrt(K) of the SVD formulation).
+
+    The covariance comes from the raw moments (two BLAS matmuls, no centred copy); the offset to the first
+    vertex keeps the moments small, so round-off stays far below 1e-5 mm wherever the model lies.
+    """
+    patch = np.asarray(patch, dtype=float)
+    ref = patch[:, :1, :]
+    centre, normal, rms = _plane_moments_fit(patch - ref, np.asarray(vertical, float))
+    return centre + ref[:, 0], normal, rms
+
+
+def _plane_moments_fit(q: np.ndarray, vertical: np.ndarray):
+    """TLS plane of points ``q`` (B, K, 3) given near a local origin (|q| up to ~1 m keeps round-off < 1e-5 mm)."""
+    k = q.shape[1]
+    mean = np.matmul(np.full((1, k), 1.0 / k), q)  # (B, 1, 3)
+    cov = np.matmul(q.transpose(0, 2, 1), q) / k - mean.transpose(0, 2, 1) * mean
+    w, v = np.linalg.eigh(cov)
+    normal = v[:, :, 0]
+    normal = normal * np.where(normal @ vertical < 0, -1.0, 1.0)[:, None]
+    return mean[:, 0], normal, np.sqrt(np.clip(w[:, 0], 0.0, None))
+
+
+def fit_spheres(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Algebraic least-squares spheres of a batch of point sets (works on partial caps).
+
+    pts: (B, K, 3) mm.  Solves [2x 2y 2z 1][c; d] = x^2+y^2+z^2 on mean-centred points (for conditioning).
+    Returns centre (B, 3) and radius (B,) in mm.
+    """
+    pts = np.asarray(pts, dtype=float)
+    mu = pts.mean(axis=1)
+    q = pts - mu[:, None, :]
+    s = np.einsum("bki,bki->bk", q, q)
+    # centred points make the column of ones orthogonal to the 2q columns, so the 4x4 normal equations split
+    # into a 3x3 system for the centre offset and d = mean(|q|^2)
+    qt = q.transpose(0, 2, 1)
+    c = 0.5 * np.linalg.solve(np.matmul(qt, q), np.matmul(qt, s[:, :, None]))[:, :, 0]
+    return mu + c, np.sqrt(s.mean(axis=1) + np.einsum("bi,bi->b", c, c))
+
+
+def patient_frame(c_left: np.ndarray, c_right: np.ndarray, vertical: np.ndarray,
+                  symphysis: np.ndarray, s1_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Medio-lateral Lh (left->right) and anterior A unit vectors (B, 3) from the femoral-head centres.
+
+    Lh = horizontal part of c_right - c_left, A = V x Lh.  Both are flipped where the symphysis centre lies
+    posterior to the S1 centre (left/right labels swapped).  Also returns the boolean ``flipped`` (B,).
+    """
+    d = c_right - c_left
+    h = d - (d @ vertical)[:, None] * vertical
+    norm = np.linalg.norm(h, axis=1)
+    if np.any(norm < 1e-9):
+        raise ValueError("femoral-head centres coincide in the horizontal plane: no medio-lateral axis")
+    lh = h / norm[:, None]
+    a = np.cross(vertical, lh)
+    flipped = np.einsum("bi,bi->b", symphysis - s1_centre, a) < 0
+    sign = np.where(flipped, -1.0, 1.0)[:, None]
+    return lh * sign, a * sign, flipped
+
+
+def sag_deg(v: np.ndarray, anterior: np.ndarray, vertical: np.ndarray) -> np.ndarray:
+    """Signed sagittal inclination atan2(v.A, v.V) in deg: 0 = up, positive = tilted anteriorly."""
+    return np.degrees(np.arctan2(np.einsum("...i,...i->...", v, anterior), v @ vertical))
+
+
+def cor_deg(v: np.ndarray, lateral: np.ndarray, vertical: np.ndarray) -> np.ndarray:
+    """Signed coronal inclination atan2(v.Lh, v.V) in deg: 0 = up, positive = tilted to the patient's right."""
+    return np.degrees(np.arctan2(np.einsum("...i,...i->...", v, lateral), v @ vertical))
+
+
+# --------------------------------------------------------------------------------- per-parameter formulas
+
+def sacral_slope_deg(n_s1, anterior, vertical):
+    """SS = sag(n_S1sup): S1 plate vs horizontal, positive when it slopes down anteriorly (§2.1)."""
+    return sag_deg(n_s1, anterior, vertical)
+
+
+def pelvic_tilt_deg(s1_centre, hip_axis, anterior, vertical):
+    """PT = -sag(S1mid - HA): positive when the S1 centre lies posterior to the hip axis (§2.2)."""
+    return -sag_deg(s1_centre - hip_axis, anterior, vertical)
+
+
+def pelvic_incidence_deg(ss_deg, pt_deg):
+    """PI = SS + PT with signed SS and PT (§2.3); morphological, independent of the vertical."""
+    return ss_deg + pt_deg
+
+
+def unsigned_pelvic_incidence_deg(n_s1, s1_centre, hip_axis, anterior, vertical):
+    """QC form of PI: unsigned angle between the sagittal projections of n_S1sup and S1mid - HA (deg)."""
+    return np.abs(sag_deg(n_s1, anterior, vertical) - sag_deg(s1_centre - hip_axis, anterior, vertical))
+
+
+def lordosis_deg(theta_upper_sup_deg, theta_lower_deg):
+    """Sagittal Cobb between two cranially oriented endplates, positive = lordosis (theta_lower - theta_upper)."""
+    return theta_lower_deg - theta_upper_sup_deg
+
+
+def kyphosis_deg(theta_upper_sup_deg, theta_lower_inf_deg):
+    """Sagittal Cobb between two cranially oriented endplates, positive = kyphosis (theta_upper - theta_lower)."""
+    return theta_upper_sup_deg - theta_lower_inf_deg
+
+
+def t1_spinopelvic_inclination_deg(t1_centre, hip_axis, anterior, vertical):
+    """T1SPI = sag(T1c - HA), positive when T1 lies anterior to the hip axis (§3.4)."""
+    return sag_deg(t1_centre - hip_axis, anterior, vertical)
+
+
+def t1_pelvic_angle_deg(pt_deg, t1spi_deg):
+    """TPA = PT + T1SPI: angle T1c-HA-S1mid (§3.4)."""
+    return pt_deg + t1spi_deg
+
+
+def global_tilt_deg(pt_deg, c7_centre, s1_centre, anterior, vertical):
+    """GT = PT + C7VT, C7VT = sag(C7c - S1mid): angle C7c-S1mid-HA, positive = C7 anterior (§3.3)."""
+    return pt_deg + sag_deg(c7_centre - s1_centre, anterior, vertical)
+
+
+def sva_mm(plumb_centre, s1_posterosuperior, anterior):
+    """Horizontal (A) offset of a plumb line from the S1 posterosuperior corner, positive = anterior (mm)."""
+    return np.einsum("...i,...i->...", plumb_centre - s1_posterosuperior, anterior)
+
+
+def disc_heights_mm(c_upper_inf, n_upper_inf, c_lower_sup, n_lower_sup, ant_upper, ant_lower,
+                    post_upper, post_lower):
+    """Central, anterior and posterior disc heights (mm) along the mean endplate normal (§5).
+
+    c_*: endplate centres; n_*: cranial unit normals; ant_/post_*: the rim points extreme in +A / -A of the
+    upper vertebra's inferior and the lower vertebra's superior endplate.  All (B, 3).
+    """
+    m = n_upper_inf + n_lower_sup
+    m = m / np.linalg.norm(m, axis=-1, keepdims=True)
+
+    def along(p, q):
+        return np.einsum("bi,bi->b", p - q, m)
+
+    return along(c_upper_inf, c_lower_sup), along(ant_upper, ant_lower), along(post_upper, post_lower)
+
+
+def cobb_angle(phi_sup_deg: np.ndarray, phi_inf_deg: np.ndarray, secondary_min_deg: float = 10.0) -> dict:
+    """Coronal Cobb by exhaustive end-vertebra search (§3.7), vectorised over the batch.
+
+    phi_sup_deg / phi_inf_deg: (B, L) coronal tilts of the superior / inferior endplates, cranial to caudal.
+    Main curve (i*, j*) = argmax_{i <= j} |phi_sup[i] - phi_inf[j]|.  Apex = vertebra in [i*, j*] whose
+    mid-plane tilt is closest to the mean of the two end tilts.  Convexity = +1 for a curve convex to the
+    patient's right (+Lh), i.e. sign(phi_inf[j*] - phi_sup[i*]).  Secondary curve = the largest curve of the
+    cranial block [0, i*] and the caudal block [j*, L-1] (shared end vertebrae allowed, the main pair
+    excluded); NaN when below ``secondary_min_deg``.
+    Returns arrays: cobb, upper, lower, apex (int indices), convexity, cobb2, upper2, lower2.
+    """
+    b, n = phi_sup_deg.shape
+    diff = phi_sup_deg[:, :, None] - phi_inf_deg[:, None, :]
+    mag = np.abs(diff)
+    ii, jj = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    valid = ii <= jj
+    main = np.where(valid, mag, -np.inf).reshape(b, -1)
+    k = np.argmax(main, axis=1)
+    up, lo = np.unravel_index(k, (n, n))
+    rows = np.arange(b)
+    cobb = main[rows, k]
+    convexity = np.sign(-diff[rows, up, lo])
+    convexity = np.where(convexity == 0, 1.0, convexity)
+    mid = 0.5 * (phi_sup_deg + phi_inf_deg)
+    target = 0.5 * (phi_sup_deg[rows, up] + phi_inf_deg[rows, lo])
+    lv = np.arange(n)[None, :]
+    in_curve = (lv >= up[:, None]) & (lv <= lo[:, None])
+    apex = np.argmin(np.where(in_curve, np.abs(mid - target[:, None]), np.inf), axis=1)
+    cranial = valid[None] & (jj[None] <= up[:, None, None])
+    caudal = valid[None] & (ii[None] >= lo[:, None, None])
+    same = (ii[None] == up[:, None, None]) & (jj[None] == lo[:, None, None])
+    sec = np.where((cranial | caudal) & ~same, mag, -np.inf).reshape(b, -1)
+    k2 = np.argmax(sec, axis=1)
+    cobb2 = sec[rows, k2]
+    up2, lo2 = np.unravel_index(k2, (n, n))
+    keep = cobb2 >= secondary_min_deg
+    return {"cobb": cobb, "upper": up, "lower": lo, "apex": apex, "convexity": convexity,
+            "cobb2": np.where(keep, cobb2, np.nan), "upper2": np.where(keep, up2, -1),
+            "lower2": np.where(keep, lo2, -1)}
+
+
+# ------------------------------------------------------------------------------------------ measure
+
+class _Block:
+    """All landmark vertices of the batch gathered once (one fancy-index pass), addressed by set name.
+
+    Coordinates are relative to a per-model local origin, so positions from it are only used in differences.
+    """
+
+    def __init__(self, points: np.ndarray, sets: dict[str, np.ndarray]):
+        idx = [np.asarray(i).ravel() for i in sets.values()]
+        ends = np.cumsum([len(i) for i in idx])
+        self.slices = {k: slice(e - len(i), e) for k, i, e in zip(sets, idx, ends)}
+        # gather first, convert after: a float32 (B, 95k, 3) batch is never copied whole
+        self.pts = np.take(points, np.concatenate(idx), axis=1).astype(float)
+        if not np.isfinite(self.pts.sum()):
+            bad = ~np.isfinite(self.pts).all(axis=(0, 2))
+            first = int(np.argmax(bad))
+            name = next(k for k, sl in self.slices.items() if sl.start <= first < sl.stop)
+            raise ValueError(f"non-finite coordinates in landmark set {name}")
+        # one local origin per model (its first landmark vertex): every parameter is translation invariant,
+        # and small coordinates keep the raw-moment plane fits accurate
+        self.pts -= self.pts[:, :1, :].copy()
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.pts[:, self.slices[name]]
+
+    def extreme(self, name: str, direction: np.ndarray, largest: bool) -> np.ndarray:
+        """Vertex of set ``name`` with the largest (smallest) projection on ``direction`` (B, 3), per model."""
+        p = self[name]
+        proj = np.matmul(p, direction[:, :, None])[:, :, 0]
+        k = np.argmax(proj, axis=1) if largest else np.argmin(proj, axis=1)
+        return np.take_along_axis(p, k[:, None, None], axis=1)[:, 0]
+
+
+def measure(points, landmarks: Landmarks, vertical=(0.0, 0.0, 1.0), age=None, assumed_age: float = 65.0,
+            c7_proxy: str = "extrapolated", ldi_min_ll_deg: float = _gap.LDI_MIN_LL_DEG,
+            ldi_undefined_points: float = 0.0, cobb_secondary_min_deg: float = 10.0) -> pd.DataFrame:
+    """Measure every spinopelvic parameter of a batch of models in correspondence.
+
+    points: (B, N, 3) or (N, 3) vertex coordinates in mm (RAS); the landmark index sets name the vertices.
+    vertical: the "up" direction of the frame (normalised here); positional parameters depend on it.
+    age: None (GAP = NaN), a scalar or (B,) ages in years.  assumed_age: age for ``GAP_assumed_age``.
+    c7_proxy: "extrapolated" (C7c = 2 T1c - T2c, default) or "T1" (C7c = T1c) for ``GT``; the choice is
+        written to ``GT_proxy``.  ``SVA_C7est`` always uses the extrapolated centre, ``SVA_T1`` the T1 centre.
+    ldi_min_ll_deg: LDI is NaN (``LDI_undefined``) where LL <= this.  ldi_undefined_points: LDI points there.
+    cobb_secondary_min_deg: smallest secondary coronal curve reported in ``Cobb2``.
+    Returns a DataFrame with B rows; column units in :data:`UNITS`.
+    """
+    pts = np.asarray(points)
+    if pts.dtype.kind not in "fiu":
+        raise ValueError(f"points must be a numeric array, got dtype {pts.dtype}")
+    if pts.ndim == 2:
+        pts = pts[None]
+    if pts.ndim != 3 or pts.shape[2] != 3:
+        raise ValueError(f"points must have shape (B, N, 3) or (N, 3), got {np.shape(points)}")
+    b, n_vert, _ = pts.shape
+    if b == 0:
+        raise ValueError("points: empty batch")
+    landmarks.validate(n_vert, "measure landmarks")
+    if c7_proxy not in C7_PROXIES:
+        raise ValueError(f"c7_proxy must be one of {C7_PROXIES}, got {c7_proxy!r}")
+    v = np.asarray(vertical, dtype=float).reshape(-1)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) < 1e-12:
+        raise ValueError(f"vertical must be a finite non-zero 3-vector, got {vertical!r}")
+    v = v / np.linalg.norm(v)
+    age_arr = np.full(b, np.nan) if age is None else np.asarray(age, dtype=float)
+    if age_arr.ndim == 0:
+        age_arr = np.full(b, float(age_arr))
+    if age_arr.shape != (b,):
+        raise ValueError(f"age must be None, a scalar or one value per model ({b}), got shape {age_arr.shape}")
+
+    sets = {f"{lv} sup": landmarks.endplate_sup[lv] for lv in LEVELS + ("S1",)}
+    sets.update({f"{lv} inf": landmarks.endplate_inf[lv] for lv in LEVELS})
+    sets.update({f"{lv} sup rim": landmarks.rim_sup[lv] for lv in LEVELS + ("S1",)})
+    sets.update({f"{lv} inf rim": landmarks.rim_inf[lv] for lv in LEVELS})
+    sets.update({f"femoral head {k}": landmarks.femoral_head[k] for k in ("L", "R")})
+    sets["pubic symphysis"] = landmarks.pubic_symphysis
+    blk = _Block(pts, sets)
+
+    # 1. endplate planes (loop over the 35 patches, vectorised over models)
+    nl = len(LEVELS)
+    c_sup, n_sup, c_inf, n_inf = (np.empty((b, nl, 3)) for _ in range(4))
+    rms_max = np.zeros(b)
+    for i, lv in enumerate(LEVELS):
+        c_sup[:, i], n_sup[:, i], r1 = _plane_moments_fit(blk[f"{lv} sup"], v)
+        c_inf[:, i], n_inf[:, i], r2 = _plane_moments_fit(blk[f"{lv} inf"], v)
+        rms_max = np.maximum(rms_max, np.maximum(r1, r2))
+    s1_c, s1_n, r = _plane_moments_fit(blk["S1 sup"], v)
+    rms_max = np.maximum(rms_max, r)
+
+    # 2. femoral heads, 3. frame
+    fh_c = {}
+    fh_r = {}
+    for side in ("L", "R"):
+        fh_c[side], fh_r[side] = fit_spheres(blk[f"femoral head {side}"])
+    symph = blk["pubic symphysis"].mean(axis=1)
+    lh, ant, flipped = patient_frame(fh_c["L"], fh_c["R"], v, symph, s1_c)
+    ha = 0.5 * (fh_c["L"] + fh_c["R"])
+
+    # 4. parameters
+    ss = sacral_slope_deg(s1_n, ant, v)
+    pt = pelvic_tilt_deg(s1_c, ha, ant, v)
+    pi = pelvic_incidence_deg(ss, pt)
+    pi_err = np.abs(pi - unsigned_pelvic_incidence_deg(s1_n, s1_c, ha, ant, v))
+    th_sup = sag_deg(n_sup, ant[:, None], v)
+    th_inf = sag_deg(n_inf, ant[:, None], v)
+    li = {lv: i for i, lv in enumerate(LEVELS)}
+    ll = lordosis_deg(th_sup[:, li["L1"]], ss)
+    ll_l4s1 = lordosis_deg(th_sup[:, li["L4"]], ss)
+    ll_l1l5 = lordosis_deg(th_sup[:, li["L1"]], th_inf[:, li["L5"]])
+    body = 0.5 * (c_sup + c_inf)
+    t1c, t2c = body[:, li["T1"]], body[:, li["T2"]]
+    c7_ext = 2.0 * t1c - t2c
+    c7 = c7_ext if c7_proxy == "extrapolated" else t1c
+    t1spi = t1_spinopelvic_inclination_deg(t1c, ha, ant, v)
+    s1ps = blk.extreme("S1 sup rim", ant, largest=False)
+
+    out: dict[str, np.ndarray | list] = {
+        "PI": pi, "PT": pt, "SS": ss, "LL": ll, "LL_L4S1": ll_l4s1, "LL_L1L5": ll_l1l5,
+        "PI_minus_LL": pi - ll, "LL_minus_PI": ll - pi,
+        "GT": global_tilt_deg(pt, c7, s1_c, ant, v), "GT_proxy": [c7_proxy] * b,
+        "GT_T1": global_tilt_deg(pt, t1c, s1_c, ant, v),
+        "T1SPI": t1spi, "TPA": t1_pelvic_angle_deg(pt, t1spi),
+        "TK_T1T12": kyphosis_deg(th_sup[:, li["T1"]], th_inf[:, li["T12"]]),
+        "TK_T4T12": kyphosis_deg(th_sup[:, li["T4"]], th_inf[:, li["T12"]]),
+        "TK_T5T12": kyphosis_deg(th_sup[:, li["T5"]], th_inf[:, li["T12"]]),
+    }
+    cobb = cobb_angle(cor_deg(n_sup, lh[:, None], v), cor_deg(n_inf, lh[:, None], v), cobb_secondary_min_deg)
+    names = np.array(LEVELS, dtype=object)
+    out.update({
+        "Cobb": cobb["cobb"], "Cobb_convexity": cobb["convexity"].astype(int),
+        "Cobb_upper": names[cobb["upper"]], "Cobb_lower": names[cobb["lower"]], "Cobb_apex": names[cobb["apex"]],
+        "Cobb2": cobb["cobb2"],
+        "Cobb2_upper": np.where(cobb["upper2"] >= 0, names[cobb["upper2"]], ""),
+        "Cobb2_lower": np.where(cobb["lower2"] >= 0, names[cobb["lower2"]], ""),
+        "SVA_T1": sva_mm(t1c, s1ps, ant), "SVA_C7est": sva_mm(c7_ext, s1ps, ant),
+    })
+    for k, (upper, lower) in enumerate(DISCS):
+        iu = li[upper]
+        cl = s1_c if lower == "S1" else c_sup[:, li[lower]]
+        nl_ = s1_n if lower == "S1" else n_sup[:, li[lower]]
+        ru, rl = f"{upper} inf rim", f"{lower} sup rim"
+        name = disc_name(upper, lower)
+        dh, dha, dhp = disc_heights_mm(
+            c_inf[:, iu], n_inf[:, iu], cl, nl_,
+            blk.extreme(ru, ant, True), blk.extreme(rl, ant, True),
+            blk.extreme(ru, ant, False), blk.extreme(rl, ant, False),
+        )
+        out[f"DH_{name}"], out[f"DHa_{name}"], out[f"DHp_{name}"] = dh, dha, dhp
+    # anatomical sides: with swapped labels the fit called "L" is the right head
+    out["FH_radius_L"] = np.where(flipped, fh_r["R"], fh_r["L"])
+    out["FH_radius_R"] = np.where(flipped, fh_r["L"], fh_r["R"])
+    out["HA_width"] = np.linalg.norm(fh_c["R"] - fh_c["L"], axis=1)
+
+    g = _gap.gap_score(pi, ss, ll, ll_l4s1, out["GT"], age_arr, ldi_undefined_points, ldi_min_ll_deg)
+    assumed = g["GAP_noage"] + _gap.age_points(assumed_age)
+    known = ~np.isnan(age_arr)
+    out.update({
+        "RPV": g["RPV"], "RLL": g["RLL"], "RSA": g["RSA"], "LDI": g["LDI"], "LDI_undefined": np.isnan(g["LDI"]),
+        "RPV_pts": g["RPV_pts"], "RLL_pts": g["RLL_pts"], "LDI_pts": g["LDI_pts"], "RSA_pts": g["RSA_pts"],
+        "Age_pts": np.where(known, g["Age_pts"], _gap.age_points(assumed_age)),
+        "GAP_noage": g["GAP_noage"], "GAP": g["GAP"], "GAP_assumed_age": assumed,
+        "GAP_category": _gap.gap_category(np.where(known, g["GAP"], assumed)),
+        "PI_identity_err": pi_err, "endplate_rms_max": rms_max,
+    })
+    return pd.DataFrame(out)
+
+
+def measure_batch(points, landmarks: Landmarks | str | Path, vertical_axis=(0.0, 0.0, 1.0),
+                  **kwargs) -> pd.DataFrame:
+    """Workflow adapter: :func:`measure` with ``landmarks`` given as a :class:`Landmarks` or a JSON path."""
+    if not isinstance(landmarks, Landmarks):
+        landmarks = Landmarks.load(landmarks)
+    return measure(points, landmarks, vertical=vertical_axis, **kwargs)

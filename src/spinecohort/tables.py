@@ -1,0 +1,63 @@
+"""Parameter tables: the sheet-versus-measurement comparison and the Descriptive_List workbook."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .cohort import atomic_path, commit
+from .measure import UNITS, parameter_table_header
+
+NOTES = [
+    ("model_id / ID", "", "virtual model index (sum over modes of (w_i + 3) * 7^(5 - i)) / patient ID"),
+    ("PI, PT, SS", "deg", "pelvic incidence, tilt, sacral slope; signed, PI = PT + SS; PT > 0 when S1 is behind the hip axis"),
+    ("LL, LL_L4S1, LL_L1L5", "deg", "lumbar lordosis L1-S1 (GAP's), L4-S1, L1-L5 (superior to inferior endplates); + = lordosis"),
+    ("PI_minus_LL, LL_minus_PI", "deg", "mismatch; the seed's column 'LL-PI' is LL_minus_PI (its inclusion criterion means PI_minus_LL > 10)"),
+    ("GT, GT_T1", "deg", "global tilt with the C7 proxy named in GT_proxy (C7 is not modelled), and with the T1 centre"),
+    ("T1SPI, TPA", "deg", "T1 spinopelvic inclination, T1 pelvic angle = PT + T1SPI"),
+    ("TK_*", "deg", "thoracic kyphosis between superior endplate of the first and inferior endplate of the last level"),
+    ("Cobb, Cobb2", "deg", "main / largest secondary coronal curve (endplate tilts), end and apex levels in Cobb_upper/lower/apex"),
+    ("RPV, RLL, RSA", "deg", "GAP relative pelvic version, lumbar lordosis, spinopelvic alignment"),
+    ("LDI", "%", "lordosis distribution index 100 L4-S1 / L1-S1; NaN (LDI_undefined) when LL <= 1 deg"),
+    ("GAP, GAP_noage, GAP_assumed_age", "points", "GAP score with the patient's age / without the age term / with the assumed age"),
+    ("SVA_T1, SVA_C7est", "mm", "sagittal offset proxies: T1 / extrapolated C7 centre ahead of the S1 posterosuperior corner"),
+    ("DH_, DHa_, DHp_<disc>", "mm", "central, anterior and posterior disc heights"),
+    ("FH_radius_L/R, HA_width", "mm", "femoral head radii (sphere fits), distance between the head centres"),
+]
+
+
+def compare_with_sheet(measured: pd.DataFrame, sheet: pd.DataFrame) -> pd.DataFrame:
+    """Per numeric parameter present in both tables: mean signed, mean and max absolute differences
+    (sheet - measured), in the parameter's unit.  For the synthetic cohort the sheet holds the generator's
+    true values, so this is the measurement error."""
+    m = measured.set_index("ID")
+    s = sheet.set_index("ID").loc[m.index]
+    rows = []
+    for col in m.columns:
+        if col in s.columns and col != "age" and pd.api.types.is_numeric_dtype(m[col]) \
+                and pd.api.types.is_numeric_dtype(s[col]):
+            d = (s[col].astype(float) - m[col].astype(float)).to_numpy()
+            d = d[np.isfinite(d)]
+            if len(d):
+                rows.append((col, UNITS.get(col, ""), len(d), d.mean(), np.abs(d).mean(), np.abs(d).max()))
+    return pd.DataFrame(rows, columns=["parameter", "unit", "n", "mean_diff", "mean_abs_diff", "max_abs_diff"])
+
+
+def write_descriptive_list(path: str | Path, patients: pd.DataFrame | None = None,
+                           virtual: pd.DataFrame | None = None) -> None:
+    """``Descriptive_List.xlsx``: sheet 1 the virtual cohort, sheet 2 the patients (as in the seed), then a
+    notes sheet with units and definitions; headers carry units, e.g. ``PI [deg]``."""
+    tmp = atomic_path(path)
+    with pd.ExcelWriter(tmp, engine="openpyxl") as xl:
+        for name, df in (("Virtual cohort", virtual), ("Patients", patients)):
+            if df is None:
+                continue
+            parameter_table_header(df).to_excel(xl, sheet_name=name, index=False, float_format="%.4f")
+            ws = xl.sheets[name]
+            ws.freeze_panes = "B2"
+            for cell in ws[1]:
+                cell.font = cell.font.copy(bold=True)
+        pd.DataFrame(NOTES, columns=["columns", "unit", "definition"]).to_excel(xl, sheet_name="Notes", index=False)
+    commit(tmp, path)
