@@ -13,6 +13,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/cohort.smk"
 include: "workflow/rules/ssm.smk"
 include: "workflow/rules/measure.smk"
+include: "workflow/rules/template.smk"
 
 
 rule all:

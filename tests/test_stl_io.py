@@ -15,6 +15,15 @@ def test_round_trip_preserves_vertex_order(tmp_path, small_cohort, ascii):
     assert np.abs(v2 - v).max() < 3.1e-5
 
 
+def test_binary_stl_is_reproducible(tmp_path, small_cohort):
+    v, f = small_cohort.vertices[0], small_cohort.faces
+    write_stl(tmp_path / "a.stl", v, f)
+    write_stl(tmp_path / "b.stl", v, f)
+    data = (tmp_path / "a.stl").read_bytes()
+    assert data == (tmp_path / "b.stl").read_bytes()  # no time stamp in the header
+    assert len(data) == 84 + 50 * len(f)
+
+
 def test_merge_numbers_vertices_by_first_occurrence():
     tri = np.array([[[5, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 0], [1, 0, 0], [9, 9, 9]]], float)
     v, f = merge_vertices(tri)

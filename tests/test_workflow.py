@@ -48,8 +48,15 @@ def test_dag_produces_every_stage_output(test_run):
     sheets = pd.read_excel(r / "Descriptive_List.xlsx", sheet_name=None)
     assert list(sheets) == ["Patients", "Notes"] and len(sheets["Patients"]) == 8
     assert {"ID", "age", "PI [deg]", "LDI [%]", "DH_L4-L5 [mm]", "GAP [points]"} <= set(sheets["Patients"].columns)
+    morph = pd.read_csv(r / "template" / "morph_report.csv")
+    assert len(morph) == 18 and (morph["distance_final_mean_mm"] < 0.04).all()  # the seed's bound
+    transfer = pd.read_csv(r / "template" / "transfer_report.csv").set_index("method")
+    assert transfer.loc["smooth", "inverted_element_fraction"] < transfer.loc["nearest", "inverted_element_fraction"] / 10
+    deck = (r / "release" / "Mean_Model (Template).inp").read_text()
+    assert deck.count("*ELEMENT, TYPE=C3D8") == 1 and "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck
     for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
-                 "measure_patients", "descriptive_list"):
+                 "measure_patients", "descriptive_list", "hex_template", "morph_template", "hex_ssm",
+                 "template_inp"):
         assert (test_run / "logs" / f"{rule}.log").exists()
         assert (r / "benchmarks" / f"{rule}.tsv").exists()
 
@@ -57,6 +64,35 @@ def test_dag_produces_every_stage_output(test_run):
 def test_nothing_to_do_on_rerun(test_run):
     proc = run(test_run, "-n")
     assert proc.returncode == 0 and "Nothing to be done" in proc.stdout + proc.stderr
+
+
+def _planned_jobs(workdir, *targets):
+    """Rule -> job count of what Snakemake would run (its own dry-run job stats)."""
+    proc = run(workdir, "-n", *targets)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = proc.stdout + proc.stderr
+    if "Nothing to be done" in out:
+        return {}
+    table = out.split("Job stats:")[1].split("\n\n")[0].splitlines()[3:]
+    return {line.split()[0]: int(line.split()[1]) for line in table if line.split() and line.split()[0] != "total"}
+
+
+def test_one_model_by_target_file_runs_only_that_job(test_run):
+    target = "results/models/model_00013.inp"  # the mean model of the 3-mode x 3-level test grid
+    assert _planned_jobs(test_run, target) == {"model_files": 1}
+    proc = run(test_run, target)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    deck = (test_run / target).read_text()
+    assert "weights (SD) [0.0, 0.0, 0.0]" in deck
+    mean = (test_run / "results" / "release" / "Mean_Model (Template).inp").read_text()
+    node_block = lambda text: text.split("*NODE")[1].split("*ELEMENT")[0].splitlines()[1:]  # noqa: E731
+    assert node_block(deck) == node_block(mean)  # all weights 0: the mean model's coordinates
+
+
+def test_config_change_reruns_only_the_rules_that_use_it(test_run):
+    # params are rerun triggers: a new hex type changes only the template deck (and nothing upstream)
+    assert _planned_jobs(test_run, "--config", "template={'resolution': 'coarse', 'hex_type': 'C3D8I'}") == \
+        {"template_inp": 1, "all": 1}
 
 
 def test_broken_user_stl_fails_with_the_file_named_and_no_output(test_run, tmp_path):

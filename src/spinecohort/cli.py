@@ -53,6 +53,28 @@ def _ssm_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export(args: argparse.Namespace) -> int:
+    import yaml
+
+    from .cohort import load_cohort_npz
+    from .hex_ssm import HexSSM
+    from .hex_template import HexTemplate
+    from .models import virtual_model, write_model
+    from .pca import SSM
+
+    cfg = yaml.safe_load(Path(args.config).read_text())
+    r = Path(args.results or cfg["results"])
+    grid = cfg["grid"]
+    template = HexTemplate.load(r / "template" / "template.npz")
+    vm = virtual_model(args.model_id, SSM.load(r / "ssm" / "ssm.npz"), HexSSM.load(r / "template" / "hex_ssm.npz"),
+                       template, grid["n_modes"], grid["levels"])
+    out = args.out or Path(f"model_{vm.model_id:05d}.{args.format}")
+    write_model(vm, args.format, out, template, load_cohort_npz(r / "cohort" / "cohort.npz").faces,
+                cfg["template"]["hex_type"])
+    print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {vm.repair}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="spinecohort", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -76,6 +98,14 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("ssm-info", help="summarise an ssm.npz (modes, compactness)")
     s.add_argument("ssm", type=Path)
     s.set_defaults(func=_ssm_info)
+
+    e = sub.add_parser("export", help="materialize one virtual model (.inp, .stl or .vtu)")
+    e.add_argument("model_id", help="model_08403 or 8403")
+    e.add_argument("--format", choices=["inp", "stl", "vtu"], default="inp")
+    e.add_argument("--out", type=Path)
+    e.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    e.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    e.set_defaults(func=_export)
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)

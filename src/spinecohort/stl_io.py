@@ -77,8 +77,19 @@ def merge_vertices(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def write_stl(path: str | Path, vertices: np.ndarray, faces: np.ndarray, ascii: bool = False,
               name: str = "spinecohort") -> None:
-    """Write a triangle mesh as binary (default) or ASCII STL; coordinates are stored as float32."""
+    """Write a triangle mesh as binary (default) or ASCII STL; coordinates are stored as float32.
+
+    The binary header is fixed text (numpy-stl's own writer stamps the time into it), so the same mesh
+    always gives the same bytes.
+    """
     m = stl_mesh.Mesh(np.zeros(len(faces), dtype=stl_mesh.Mesh.dtype), name=name, calculate_normals=False)
     m.vectors[:] = np.asarray(vertices)[np.asarray(faces)]
     m.update_normals()
-    m.save(str(path), mode=Mode.ASCII if ascii else Mode.BINARY)
+    if ascii:
+        m.save(str(path), mode=Mode.ASCII)
+        return
+    header = f"binary STL {name} (spinecohort, mm)".encode("ascii", "replace")[:80].ljust(80, b" ")
+    with open(path, "wb") as fh:
+        fh.write(header)
+        fh.write(np.uint32(len(faces)).tobytes())
+        fh.write(m.data.tobytes())

@@ -1,0 +1,90 @@
+"""One virtual model on demand: weights from its ID, triangulated and hexahedral coordinates, Jacobian
+check and repair, and its files (.stl, .inp, .vtu).  The same code serves the ``model_files`` rule and
+``spinecohort export``."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .fe_export import fe_model
+from .hex_ssm import HexSSM
+from .hex_template import HexTemplate
+from .pca import SSM
+from .quality import scaled_jacobian
+from .repair import RepairError, untangle
+from .store import n_models, weights_of
+
+log = logging.getLogger(__name__)
+
+
+def parse_model_id(name: str | int, n_modes: int, levels) -> int:
+    """``"model_08403"`` or 8403 -> 8403, checked against the grid size."""
+    try:
+        i = int(str(name).removeprefix("model_"))
+    except ValueError:
+        raise ValueError(f"'{name}' is not a model ID (model_00000 ... model_NNNNN)") from None
+    total = n_models(n_modes, levels)
+    if not 0 <= i < total:
+        raise ValueError(f"model ID {i} is outside the grid of {total} models (0 ... {total - 1})")
+    return i
+
+
+@dataclass
+class VirtualModel:
+    model_id: int
+    weights: np.ndarray  # (m,) SD units
+    tri_points: np.ndarray  # (N, 3) mm
+    hex_points: np.ndarray  # (n_nodes, 3) mm, repaired if needed
+    repair: dict
+
+
+def hex_points_checked(template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Hex model coordinates for ``weights`` with every inverted element repaired (local untangling)."""
+    pts = hex_ssm.sample(weights)
+    n = template.n_hex_nodes
+    sj = scaled_jacobian(pts[:n], template.hexes)
+    report = {"invalid_before": int((sj <= 0).sum()), "min_sj_before": float(sj.min()),
+              "nodes_moved": 0, "max_displacement_mm": 0.0}
+    if report["invalid_before"]:
+        fixed, rep = untangle(pts[:n], template.hexes, hex_ssm.mean[:n])
+        pts = pts.copy()
+        pts[:n] = fixed
+        report.update(nodes_moved=int(len(rep.moved_nodes)), max_displacement_mm=float(rep.max_displacement_mm))
+    sj = scaled_jacobian(pts[:n], template.hexes)
+    report.update(invalid_after=int((sj <= 0).sum()), min_sj_after=float(sj.min()))
+    return pts, report
+
+
+def virtual_model(model: str | int, ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, n_modes: int,
+                  levels) -> VirtualModel:
+    i = parse_model_id(model, n_modes, levels)
+    w = np.asarray(weights_of(i, n_modes, levels), dtype=np.float64)
+    try:
+        pts, report = hex_points_checked(template, hex_ssm, w)
+    except RepairError as exc:
+        raise RepairError(f"model_{i:05d} (weights {w.tolist()} SD) cannot be repaired: {exc}") from exc
+    return VirtualModel(i, w, ssm.sample(w), pts, report)
+
+
+def write_model(vm: VirtualModel, fmt: str, out: str | Path, template: HexTemplate, faces: np.ndarray,
+                hex_type: str = "C3D8") -> Path:
+    """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model)."""
+    from .abaqus import write_inp, write_vtu
+    from .stl_io import write_stl
+
+    out = Path(out)
+    name = f"model_{vm.model_id:05d}"
+    heading = f"spinecohort {name}, weights (SD) {np.round(vm.weights, 3).tolist()}"
+    if fmt == "stl":
+        write_stl(out, vm.tri_points, faces, name=name)
+    elif fmt == "inp":
+        write_inp(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading), out, provenance=heading)
+    elif fmt == "vtu":
+        write_vtu(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading), out)
+    else:
+        raise ValueError(f"unknown format '{fmt}' (inp | stl | vtu)")
+    return out

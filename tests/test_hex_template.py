@@ -1,0 +1,140 @@
+"""The hex template: documented counts and sets, conformity, tissue fractions, export round trip, hex SSM."""
+
+import numpy as np
+import pytest
+
+from spinecohort.abaqus import read_inp, write_inp
+from spinecohort.fe_export import fe_model
+from spinecohort.hex_ssm import inverted_over_grid, transfer_fields
+from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, HexTemplate, build_template, ogrid
+from spinecohort.landmarks import DISCS, LEVELS
+from spinecohort.pca import build_ssm
+from spinecohort.procrustes import procrustes_align
+from spinecohort.quality import scaled_jacobian
+
+
+@pytest.fixture(scope="module")
+def ssm(small_cohort):
+    return build_ssm(procrustes_align(small_cohort.vertices).aligned)
+
+
+@pytest.fixture(scope="module")
+def template(ssm, small_cohort):
+    return build_template(ssm.mean, small_cohort.faces, small_cohort.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
+
+
+def test_ogrid_counts_and_nucleus_fraction():
+    res = TEMPLATE_RESOLUTIONS["coarse"]
+    g = ogrid(res)
+    # core 4 x 4 quads + 3 rings of 16: 64 quads; 5 x 5 core nodes + 3 x 16 ring nodes: 73 nodes
+    assert len(g.quads) == 64 and len(g.nodes) == 73
+    p = g.nodes[g.quads]
+    area = 0.5 * np.abs(np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1))
+    frac = area[g.quad_ring <= g.np_ring].sum() / area.sum()
+    assert frac == pytest.approx(0.40, abs=0.005)  # nucleus 40 % of the cross-section (seed)
+    # every quad counter-clockwise (positive area) so every hex has a positive Jacobian when extruded upwards
+    signed = 0.5 * np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1)
+    assert (signed > 0).all()
+
+
+def test_template_counts_and_sets(template, small_cohort):
+    t = template
+    # 154 node layers (S1 plate + 17 x (4 disc + 5 body)) of 73 nodes; 153 element layers of 64 hexes
+    assert t.n_hex_nodes == 154 * 73 and len(t.hexes) == 153 * 64
+    for lv in LEVELS:
+        assert len(t.elsets[f"V_{lv}_SHELL"]) == 4 * 16 and len(t.elsets[f"V_{lv}_CORE"]) == 4 * 48
+        assert len(t.elsets[f"POST_{lv}"]) > 0
+    for up, lo in DISCS:
+        name = f"D_{up}{lo}"
+        assert len(t.elsets[f"{name}_CEP"]) == 2 * 64
+        assert len(t.elsets[f"{name}_NP"]) == 3 * 32 and len(t.elsets[f"{name}_AF"]) == 3 * 32
+    # every hex in exactly one tissue set
+    hex_sets = np.concatenate([v for k, v in t.elsets.items() if t.elset_kind[k] == "hex"])
+    assert np.array_equal(np.sort(hex_sets), np.arange(len(t.hexes)))
+    # ligaments: 16 level pairs x (SSL + ISL + 2 LF + 2 CL + 2 ITL) + 17 PLL + 17 ALL
+    assert len(t.ligaments) == 16 * 8 + 34
+    assert {len(t.elsets[f"LIG_{g}"]) for g in ("SSL", "ISL")} == {16}
+    assert len(t.elsets["LIG_PLL"]) == 17 and len(t.elsets["LIG_ALL"]) == 17
+    # surface nodes are the mean's own vertices
+    assert np.array_equal(t.nodes[t.n_hex_nodes:], build_ssm_mean(small_cohort)[t.surface_vertex])
+
+
+def build_ssm_mean(cohort):
+    return build_ssm(procrustes_align(cohort.vertices).aligned).mean
+
+
+def test_vertebrae_and_discs_share_their_interface_nodes(template):
+    t = template
+    for lv in ("T1", "L3", "L5"):
+        body_nodes = np.unique(t.hexes[t.elsets[f"V_{lv}_CORE"]])
+        # the shell ring's hexes touch the two outermost node rings of the endplate: 2 x 16 nodes
+        assert np.isin(t.nsets[f"EP_INF_{lv}"], np.unique(t.hexes[t.elsets[f"V_{lv}_SHELL"]])).sum() == 32
+        below = "S1" if lv == "L5" else LEVELS[LEVELS.index(lv) + 1]
+        cep = np.unique(t.hexes[t.elsets[f"D_{lv}{below}_CEP"]])
+        # the disc's top CEP uses the vertebra's inferior endplate nodes: a conforming mesh, no tie
+        assert np.isin(t.nsets[f"EP_INF_{lv}"], cep).all()
+        assert np.isin(body_nodes, cep).any()
+
+
+def test_placed_template_is_valid_and_ceps_are_0p7_mm(template):
+    t = template
+    sj = scaled_jacobian(t.nodes, t.hexes)
+    assert sj.min() > 0.3
+    n2 = len(t.grid.nodes)
+    layers = t.nodes[: t.n_hex_nodes].reshape(-1, n2, 3)
+    # first disc node layer above the S1 plate: 0.7 mm from it at every node
+    assert np.allclose(np.linalg.norm(layers[1] - layers[0], axis=1), 0.7, atol=1e-9)
+
+
+def test_save_load_round_trip(template, tmp_path):
+    template.save(tmp_path / "t.npz")
+    back = HexTemplate.load(tmp_path / "t.npz")
+    assert np.array_equal(back.nodes, template.nodes) and np.array_equal(back.hexes, template.hexes)
+    assert back.elsets.keys() == template.elsets.keys() and back.layers == template.layers
+
+
+def test_inp_round_trips_counts_and_every_set(template, tmp_path):
+    path = tmp_path / "Mean_Model (Template).inp"
+    write_inp(fe_model(template), path)
+    mesh = read_inp(path)
+    counts = {c.type: len(c.data) for c in mesh.cells}
+    assert counts == {"hexahedron": len(template.hexes), "triangle": len(template.tris), "line": len(template.ligaments)}
+    assert len(mesh.points) == template.n_nodes
+    for name, idx in template.nsets.items():
+        assert np.array_equal(np.sort(mesh.point_sets[name]), np.sort(idx)), name
+    offsets = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}
+    sizes = [len(c.data) for c in mesh.cells]
+    for name, idx in template.elsets.items():
+        got = np.concatenate([np.asarray(b) + sum(sizes[:k]) for k, b in enumerate(mesh.cell_sets[name])])
+        assert np.array_equal(np.sort(got), np.sort(offsets[template.elset_kind[name]] + idx)), name
+
+
+def test_ccx_accepts_the_template_deck(template, tmp_path):
+    from spinecohort.calculix import check_input, find_ccx
+
+    try:
+        find_ccx()
+    except Exception as exc:  # ccx is installed by scripts/install_system_deps.sh (root) in CI
+        pytest.skip(f"CalculiX not installed: {exc}")
+    path = tmp_path / "Mean_Model (Template).inp"
+    write_inp(fe_model(template), path)
+    check_input(path, tmp_path / "ccx")  # raises on any *ERROR or unexpected *WARNING
+
+
+def test_hex_ssm_surface_nodes_follow_the_tri_ssm_exactly_and_smooth_inverts_less(template, ssm, small_cohort):
+    w = np.array([[3.0, -3.0, 3.0], [-3.0, 3.0, 0.0]])
+    smooth = transfer_fields(template, template.nodes, ssm, small_cohort.landmarks, 3, "smooth")
+    nearest = transfer_fields(template, template.nodes, ssm, small_cohort.landmarks, 3, "nearest")
+    for h in (smooth, nearest):
+        # surface elements are SSM vertices: their coordinates are the SSM's own for any weights
+        assert np.abs(h.sample(w)[:, template.n_hex_nodes:] - ssm.sample(w)[:, template.surface_vertex]).max() < 1e-9
+        assert np.array_equal(h.sample(np.zeros(3)), template.nodes)
+    # linear in the weights: sample(a + b) - mean = (sample(a) - mean) + (sample(b) - mean)
+    a, b = w
+    assert np.allclose(smooth.sample(a + b) - smooth.mean, smooth.sample(a) - smooth.mean + smooth.sample(b) - smooth.mean)
+    levels = np.array(np.meshgrid(*[[-3, 0, 3]] * 3, indexing="ij")).reshape(3, -1).T.astype(float)
+    s = inverted_over_grid(smooth, template.hexes, levels)
+    n = inverted_over_grid(nearest, template.hexes, levels)
+    # the seed's closest-vertex transfer inverts elements in most models; the smooth transfer far fewer
+    assert n["inverted_element_fraction"] > 10 * max(s["inverted_element_fraction"], 1e-6)
+    assert n["models_with_inverted"] > s["models_with_inverted"]

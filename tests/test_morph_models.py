@@ -1,0 +1,89 @@
+"""Morphing the template onto the SSM mean, and single models on demand (with Jacobian repair)."""
+
+import numpy as np
+import pytest
+
+from spinecohort.hex_ssm import transfer_fields
+from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, build_template
+from spinecohort.models import hex_points_checked, parse_model_id, virtual_model, write_model
+from spinecohort.morph import MorphParameters, morph_template, ray_weights
+from spinecohort.pca import build_ssm
+from spinecohort.procrustes import procrustes_align
+from spinecohort.quality import morph_scaled_jacobian_nb, scaled_jacobian
+from spinecohort.repair import RepairError
+from spinecohort.stl_io import read_stl
+from spinecohort.store import grid_weights
+
+
+@pytest.fixture(scope="module")
+def morphed(small_cohort):
+    ssm = build_ssm(procrustes_align(small_cohort.vertices).aligned)
+    t = build_template(ssm.mean, small_cohort.faces, small_cohort.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
+    nodes, report = morph_template(t, ssm.mean, small_cohort.faces, small_cohort.landmarks,
+                                   MorphParameters(max_iter=40, max_layers=2))
+    return ssm, t, nodes, report
+
+
+def test_morphed_mean_is_on_the_surface_and_valid(morphed):
+    _, t, nodes, report = morphed
+    assert len(report) == 18  # 17 bodies + the S1 plate
+    # the seed's bound: mean surface distance < 0.04 mm; after projection it is round-off
+    assert (report["distance_final_mean_mm"] < 0.04).all() and (report["distance_final_max_mm"] < 1e-6).all()
+    assert (report["distance_before_mm"] > 0.1).all() or report["part"].tolist()[-1] == "S1"
+    sj = scaled_jacobian(nodes, t.hexes)
+    assert sj.min() > 0.2  # no inverted element, none nearly so
+    # discs re-filled between the morphed endplates: CEP 0.7 mm at every node above the S1 plate
+    n2 = len(t.grid.nodes)
+    layers = nodes[: t.n_hex_nodes].reshape(-1, n2, 3)
+    assert np.allclose(np.linalg.norm(layers[1] - layers[0], axis=1), 0.7, atol=1e-9)
+    # surface-element nodes are untouched SSM vertices
+    assert np.array_equal(nodes[t.n_hex_nodes:], t.nodes[t.n_hex_nodes:])
+
+
+def test_ray_fractions_run_from_core_to_surface(morphed):
+    _, t, _, _ = morphed
+    outer_of, frac = ray_weights(t.grid, t.resolution.core_cells)
+    assert np.all(frac[t.grid.outer] == pytest.approx(1.0))
+    ring = frac[outer_of >= 0]
+    assert ring.min() > 0 and ring.max() == pytest.approx(1.0)
+    # shell: the ring just inside the surface sits at 1 - shell_fraction of the ray
+    assert np.unique(np.round(ring, 6)).tolist()[-2] == pytest.approx(1 - t.resolution.shell_fraction)
+
+
+def test_model_ids_and_repair_of_an_inverted_model(morphed, small_cohort, tmp_path):
+    ssm, t, nodes, _ = morphed
+    assert parse_model_id("model_08403", 5, [-3, -2, -1, 0, 1, 2, 3]) == 8403
+    with pytest.raises(ValueError, match="outside the grid of 27 models"):
+        parse_model_id("model_00027", 3, [-3, 0, 3])
+    hssm = transfer_fields(t, nodes, ssm, small_cohort.landmarks, 3, "smooth")
+    # A deliberate inversion: mode 1 pushes one interior nucleus node of the L3-L4 disc 1.6 element
+    # heights through its upper neighbour.
+    n2 = len(t.grid.nodes)
+    layer = next(i for i, ly in enumerate(t.layers) if ly["kind"] == "disc" and ly["disc"] == "L3-L4" and ly["k"] == 2)
+    node = layer * n2 + 0  # core corner node, interior to the mesh
+    up = nodes[node + n2] - nodes[node]
+    hssm.fields[:] = 0.0
+    hssm.fields[0, node] = 1.6 * up
+    pts, rep = hex_points_checked(t, hssm, np.array([1.0, 0.0, 0.0]))
+    assert rep["invalid_before"] > 0 and rep["invalid_after"] == 0 and rep["min_sj_after"] > 0
+    assert scaled_jacobian(pts[: t.n_hex_nodes], t.hexes).min() > 0
+    assert rep["nodes_moved"] >= 1 and rep["max_displacement_mm"] > 0
+
+
+def test_extreme_models_of_a_tiny_ssm_are_refused_by_name(morphed, small_cohort, tmp_path):
+    """With 8 patients, +-3 SD of the first modes pushes L5 into the sacrum in the triangulated SSM itself
+    (a collapsed L5-S1 disc): no untangling can fix that, and the error names the model."""
+    ssm, t, nodes, _ = morphed
+    hssm = transfer_fields(t, nodes, ssm, small_cohort.landmarks, 3, "smooth")
+    w = grid_weights(3, [-3, 0, 3]).astype(float)
+    sj = morph_scaled_jacobian_nb(hssm.mean[: t.n_hex_nodes], hssm.fields[:, : t.n_hex_nodes], w, t.hexes)
+    bad = np.flatnonzero((sj <= 0).any(1))
+    good = np.flatnonzero(~(sj <= 0).any(1))
+    assert len(good) > 20
+    vm = virtual_model(int(good[0]), ssm, hssm, t, 3, [-3, 0, 3])
+    out = write_model(vm, "stl", tmp_path / "m.stl", t, small_cohort.faces)
+    v, f = read_stl(out)
+    assert np.array_equal(f, small_cohort.faces) and np.abs(v - ssm.sample(w[good[0]])).max() < 3.1e-5
+    if len(bad):
+        with pytest.raises(RepairError, match=f"model_{bad[0]:05d} .* cannot be repaired"):
+            virtual_model(int(bad[0]), ssm, hssm, t, 3, [-3, 0, 3])

@@ -1,0 +1,254 @@
+"""The sharded cohort store: IDs, quantized round trip against the SSM formula, concurrent shard writes,
+checksums and rebuild after an interrupted or corrupted shard."""
+
+import itertools
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from spinecohort import store as S
+from spinecohort.pca import build_ssm
+from spinecohort.procrustes import procrustes_align
+
+# Numcodecs filters are outside the v3 core spec; zarr says so on every open of the store.
+pytestmark = pytest.mark.filterwarnings("ignore:Numcodecs codecs are not in the Zarr")
+
+# Half the 0.001 mm quantum plus three float32 roundings at |x| <= 512 mm: 0.0005 + 3 * 2^-24 * 512.
+INT_BOUND_MM = 0.0005 + 3 * 2.0**-24 * 512
+
+
+# ------------------------------------------------------------------------------------------------ IDs
+def test_model_ids_follow_the_design_formula():
+    # sum_i (w_i + 3) 7^(5-i): all -3 -> 0, all +3 -> 7^5 - 1, all 0 -> 3 * (7^4+7^3+7^2+7+1) = 8403
+    w = np.array([[-3] * 5, [3] * 5, [0] * 5, [-3, -3, -3, -3, -2], [-2, -3, -3, -3, -3], [1, -1, 2, 0, -3]])
+    expected = [0, 16806, 8403, 1, 2401, 4 * 2401 + 2 * 343 + 5 * 49 + 3 * 7 + 0]
+    assert S.model_id(w).tolist() == expected
+    assert S.model_name(16806) == "model_16806" and S.model_name([0, 7])[1] == "model_00007"
+
+
+def test_ids_and_weights_round_trip_over_the_whole_grid():
+    g = S.grid_weights()
+    assert g.shape == (16807, 5)
+    assert np.array_equal(S.model_id(g), np.arange(16807))
+    # row order is itertools.product order over the levels, mode 1 slowest
+    assert np.array_equal(g, np.array(list(itertools.product(range(-3, 4), repeat=5)), float))
+    # a non-default grid from config: 3 modes at 5 half-SD levels
+    lv = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    g3 = S.grid_weights(3, lv)
+    assert len(g3) == 125 and np.array_equal(S.model_id(g3, lv), np.arange(125))
+    assert S.weights_of(np.int64(124), 3, lv).tolist() == [1.0, 1.0, 1.0]
+
+
+def test_bad_ids_and_weights_raise():
+    with pytest.raises(ValueError, match="off the grid"):
+        S.model_id([0, 0, 0, 0, 4])
+    with pytest.raises(ValueError, match="off the grid"):
+        S.model_id([0, 0.5, 0, 0, 0])
+    with pytest.raises(ValueError, match="must lie in"):
+        S.weights_of(16807)
+    with pytest.raises(ValueError, match="integers"):
+        S.weights_of(1.5)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        S.grid_weights(2, (0, -1))
+
+
+def test_shards_are_contiguous_id_ranges():
+    assert S.n_shards(16807, 343) == 49
+    assert S.shard_range(0, 343, 16807) == (0, 343)
+    assert S.shard_range(48, 343, 16807) == (16464, 16807)
+    # a shard of 343 fixes modes 1 and 2: shard 24 is w1 = 0 (24 // 7 = 3 -> 0 SD), w2 = 0 (24 % 7 = 3)
+    w = S.weights_of(np.arange(*S.shard_range(24)))
+    assert np.all(w[:, :2] == 0) and len(np.unique(w[:, 2:], axis=0)) == 343
+    assert S.n_shards(27, 10) == 3 and S.shard_range(2, 10, 27) == (20, 27)
+    with pytest.raises(ValueError, match="out of range"):
+        S.shard_range(49, 343, 16807)
+
+
+# ------------------------------------------------------------------------------------- store contents
+@pytest.fixture(scope="module")
+def ssm(small_cohort):
+    return build_ssm(procrustes_align(small_cohort.vertices).aligned)
+
+
+def _hex_stand_in(tri):
+    """Every third surface node as a stand-in hex node set (hex has its own node count)."""
+    return tri[:, ::3]
+
+
+def test_model_read_back_equals_the_ssm_formula_within_the_quantization_bound(ssm, tmp_path):
+    # grid of 2 modes x 7 levels = 49 models in shards of 7 -> 7 shards
+    levels = tuple(range(-3, 4))
+    n_tri = ssm.mean.shape[0]
+    n_hex = _hex_stand_in(ssm.mean[None]).shape[1]
+    path = tmp_path / "cohort.zarr"
+    S.create_store(path, n_tri, n_hex, n_modes=2, levels=levels, shard_models=7,
+                   attrs={"ssm_sha256": "0" * 64, "template_sha256": "1" * 64})
+    assert S.check_store(path) == list(range(7))  # nothing written yet
+    for s in range(7):
+        shapes = ssm.sample(S.weights_of(np.arange(*S.shard_range(s, 7)), 2, levels))
+        S.write_shard(path, s, shapes, _hex_stand_in(shapes))
+    assert S.check_store(path) == []
+    root = zarr.open(str(path))
+    assert root.attrs["error_bound_mm"] == pytest.approx(INT_BOUND_MM, rel=1e-12)
+    assert root.attrs["units"] == "mm" and root.attrs["ssm_sha256"] == "0" * 64
+    assert root["weights"][40].tolist() == [2.0, 2.0]  # 40 = 5 * 7 + 5 -> levels index (5, 5)
+    errs = []
+    for i in (0, 24, 40, 48):
+        truth = ssm.sample(S.weights_of(i, 2, levels))
+        tri, hexp = S.read_model(path, i)
+        assert tri.dtype == np.float32 and tri.shape == (n_tri, 3) and hexp.shape == (n_hex, 3)
+        errs.append(np.abs(tri - truth).max())
+        assert np.abs(hexp - _hex_stand_in(truth[None])[0]).max() <= INT_BOUND_MM
+        # a plain zarr read decodes to the same millimetres without project code
+        assert np.array_equal(root["tri/points"][i], tri)
+    # within the bound, and genuinely quantized: the worst rounding comes close to half a quantum
+    assert max(errs) <= INT_BOUND_MM and max(errs) > 0.00045
+    assert np.array_equal(S.read_shard(path, 3, "hex/points"), root["hex/points"][21:28])
+
+
+@pytest.mark.parametrize("encoding,bound", [("int32", INT_BOUND_MM), ("float32", 2.0**-24 * 512)])
+def test_other_encodings_round_trip_within_their_bound(encoding, bound, tmp_path):
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-470, 470, size=(4, 300, 3))
+    path = tmp_path / "c.zarr"
+    S.create_store(path, 300, 300, n_modes=2, levels=(0, 1), shard_models=4, encoding=encoding)
+    assert S.error_bound_mm(encoding) == pytest.approx(bound)
+    S.write_shard(path, 0, x, -x)
+    tri, hexp = S.read_model(path, 3)
+    assert np.abs(tri - x[3]).max() <= bound and np.abs(hexp + x[3]).max() <= bound
+
+
+def test_bad_input_raises_value_error(tmp_path):
+    path = tmp_path / "c.zarr"
+    with pytest.raises(ValueError, match="unknown encoding"):
+        S.create_store(path, 10, 10, n_modes=2, levels=(0, 1), shard_models=2, encoding="float16")
+    with pytest.raises(ValueError, match="quantum_mm"):
+        S.create_store(tmp_path / "q.zarr", 10, 10, n_modes=2, levels=(0, 1), quantum_mm=0.01)
+    with pytest.raises(ValueError, match="not a cohort store"):
+        S.read_model(tmp_path / "nothing.zarr", 0)
+    S.create_store(path, 10, 5, n_modes=2, levels=(0, 1), shard_models=2)
+    with pytest.raises(ValueError, match="already exists"):
+        S.create_store(path, 10, 5, n_modes=2, levels=(0, 1), shard_models=2)
+    ok = np.zeros((2, 10, 3))
+    with pytest.raises(ValueError, match=r"hex/points of shard 0 must have shape \(2, 5, 3\)"):
+        S.write_shard(path, 0, ok, np.zeros((2, 10, 3)))
+    with pytest.raises(ValueError, match="non-finite"):
+        S.write_shard(path, 0, np.full((2, 10, 3), np.nan), ok[:, :5])
+    with pytest.raises(ValueError, match="max_abs_mm"):
+        S.write_shard(path, 0, ok + 600.0, ok[:, :5])
+    with pytest.raises(ValueError, match="out of range"):
+        S.write_shard(path, 2, ok, ok[:, :5])
+    with pytest.raises(ValueError, match="out of range"):
+        S.read_model(path, 4)
+
+
+# ------------------------------------------------------------------------ concurrency and fault tolerance
+N_TRI, N_HEX, SHARD_MODELS = 2000, 700, 9
+_WRITER = """
+import sys, numpy as np
+from spinecohort.store import write_shard, shard_range
+path, shard = sys.argv[1], int(sys.argv[2])
+rng = np.random.default_rng(shard)
+a, b = shard_range(shard, {sm})
+write_shard(path, shard, rng.uniform(-400, 400, (b - a, {nt}, 3)), rng.uniform(-400, 400, (b - a, {nh}, 3)))
+""".format(sm=SHARD_MODELS, nt=N_TRI, nh=N_HEX)
+
+
+def _expected(shard):
+    rng = np.random.default_rng(shard)
+    a, b = S.shard_range(shard, SHARD_MODELS)
+    return rng.uniform(-400, 400, (b - a, N_TRI, 3)), rng.uniform(-400, 400, (b - a, N_HEX, 3))
+
+
+def _new_store(path):
+    # 2 modes x 3 levels = 9 models -> one shard; 3 modes x 3 levels = 27 -> 3 shards of 9
+    S.create_store(path, N_TRI, N_HEX, n_modes=3, levels=(-1, 0, 1), shard_models=SHARD_MODELS)
+
+
+def _files(path):
+    return {str(f.relative_to(path)): f.read_bytes() for f in sorted(Path(path).rglob("*")) if f.is_file()}
+
+
+def test_shards_written_by_concurrent_processes_do_not_interfere(tmp_path):
+    path = tmp_path / "c.zarr"
+    _new_store(path)
+    procs = [subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(s)], stderr=subprocess.PIPE)
+             for s in (2, 0, 1)]
+    for p in procs:
+        assert p.wait(timeout=120) == 0, p.stderr.read().decode()
+    assert S.check_store(path) == []
+    for s in range(3):
+        tri, hexp = _expected(s)
+        a, b = S.shard_range(s, SHARD_MODELS)
+        assert np.abs(S.read_shard(path, s) - tri).max() <= INT_BOUND_MM
+        assert np.abs(S.read_shard(path, s, "hex/points") - hexp).max() <= INT_BOUND_MM
+        assert np.array_equal(zarr.open(str(path))["weights"][a:b], S.weights_of(np.arange(a, b), 3, (-1, 0, 1)))
+
+
+def test_corrupted_missing_and_interrupted_shards_are_detected_and_rebuilt_byte_identically(tmp_path):
+    ref, work = tmp_path / "ref.zarr", tmp_path / "work.zarr"
+    for path in (ref, work):
+        _new_store(path)
+        for s in range(3):
+            S.write_shard(path, s, *_expected(s))
+    assert _files(ref) == _files(work)  # the encoding is deterministic
+
+    # one flipped byte in shard 1's hex data, shard 2's tri file gone
+    f = work / "hex/points/c/1/0/0"
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    f.write_bytes(bytes(data))
+    (work / "tri/points/c/2/0/0").unlink()
+    assert S.check_store(work) == [1, 2]
+
+    # shard 0 "killed mid-write": truncated object, zarr's temporary file left behind, no sidecar
+    f0 = work / "tri/points/c/0/0/0"
+    f0.write_bytes(f0.read_bytes()[:1000])
+    (f0.parent / "0.deadbeef.partial").write_bytes(b"half a shard")
+    for p in (work / "checksums/shard_00000").iterdir():
+        p.unlink()
+    (work / "checksums/shard_00000").rmdir()
+    assert S.check_store(work) == [0, 1, 2]
+
+    for s in S.check_store(work):
+        S.write_shard(work, s, *_expected(s))
+    assert S.check_store(work) == []
+    assert _files(ref) == _files(work)
+
+
+def test_a_shard_job_killed_mid_write_leaves_no_sidecar_and_its_rerun_matches_an_uninterrupted_run(tmp_path):
+    # hex much larger than tri, so the writer is still busy with hex when the tri shard object appears
+    writer = _WRITER.replace(str(N_HEX), "300000")
+    ref, work = tmp_path / "ref.zarr", tmp_path / "work.zarr"
+    for path in (ref, work):
+        S.create_store(path, N_TRI, 300000, n_modes=2, levels=(-1, 0, 1), shard_models=SHARD_MODELS)
+    subprocess.run([sys.executable, "-c", writer, str(ref), "0"], check=True)
+    proc = subprocess.Popen([sys.executable, "-c", writer, str(work), "0"])
+    tri_object = work / "tri/points/c/0/0/0"
+    while not tri_object.exists() and proc.poll() is None:
+        time.sleep(0.002)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL  # killed, not finished
+    assert not (work / "checksums/shard_00000").exists()
+    assert S.check_store(work) == [0]
+    subprocess.run([sys.executable, "-c", writer, str(work), "0"], check=True)
+    assert S.check_store(work) == []
+    assert _files(ref) == _files(work)
+
+
+def test_rejected_input_leaves_a_finished_shard_untouched(tmp_path):
+    path = tmp_path / "c.zarr"
+    _new_store(path)
+    S.write_shard(path, 0, *_expected(0))
+    before = _files(path)
+    tri, hexp = _expected(0)
+    with pytest.raises(ValueError, match="non-finite"):
+        S.write_shard(path, 0, np.where(tri > 399.9, np.inf, tri), hexp)
+    assert _files(path) == before and S.check_store(path) == [1, 2]

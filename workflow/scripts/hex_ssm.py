@@ -1,0 +1,30 @@
+# Adapter: transfer the SSM mode fields onto the morphed hex nodes; report inverted elements over the grid
+# for both transfer methods (the configured one is saved).
+import numpy as np
+import pandas as pd
+
+from spinecohort.cohort import load_cohort_npz
+from spinecohort.hex_ssm import inverted_over_grid, transfer_fields
+from spinecohort.hex_template import HexTemplate
+from spinecohort.logs import to_file
+from spinecohort.pca import SSM
+from spinecohort.store import grid_weights
+
+with to_file(snakemake.log[0]) as log:
+    template = HexTemplate.load(snakemake.input.template)
+    ssm = SSM.load(snakemake.input.ssm)
+    cohort = load_cohort_npz(snakemake.input.cohort)
+    with np.load(snakemake.input.nodes) as z:
+        mean_hex = z["nodes"]
+    grid = snakemake.params.grid
+    weights = grid_weights(grid["n_modes"], grid["levels"])
+    rows, chosen = [], None
+    for method in ("nearest", "smooth"):
+        hssm = transfer_fields(template, mean_hex, ssm, cohort.landmarks, grid["n_modes"], method)
+        stats = inverted_over_grid(hssm, template.hexes, weights)
+        rows.append({"method": method, "models": len(weights), **stats})
+        log.info("%s transfer: %s", method, stats)
+        if method == snakemake.params.transfer:
+            chosen = hssm
+    pd.DataFrame(rows).to_csv(snakemake.output.report, index=False)
+    chosen.save(snakemake.output.ssm)

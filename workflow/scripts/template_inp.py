@@ -1,0 +1,14 @@
+# Adapter: the Abaqus/CalculiX deck of the morphed mean, "Mean_Model (Template).inp".
+import numpy as np
+
+from spinecohort.abaqus import write_inp
+from spinecohort.fe_export import fe_model
+from spinecohort.hex_template import HexTemplate
+from spinecohort.logs import to_file
+
+with to_file(snakemake.log[0]):
+    template = HexTemplate.load(snakemake.input.template)
+    with np.load(snakemake.input.nodes) as z:
+        nodes = z["nodes"]
+    model = fe_model(template, nodes, hex_type=snakemake.params.hex_type, heading="spinecohort mean model (template)")
+    write_inp(model, snakemake.output[0], provenance="mean of the SSM, morphed hex template")
