@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .hex_template import HexTemplate
+from .hex_template import HexTemplate, disc_runs
 from .landmarks import Landmarks
 from .pca import SSM
 
@@ -98,14 +98,7 @@ def transfer_fields(template: HexTemplate, hex_mean: np.ndarray, tri_ssm: SSM, l
 
 def _interpolate_disc_fields(hf: np.ndarray, mean_layers: np.ndarray, layers: list[dict]) -> None:
     """Disc node fields = (1 - s) * lower endplate field + s * upper, with s the node's position in the mean."""
-    L = 0
-    while L < len(layers):
-        if layers[L]["kind"] != "disc":
-            L += 1
-            continue
-        first = L
-        while layers[L]["kind"] == "disc":
-            L += 1
+    for first, L in disc_runs(layers):
         lower, upper = mean_layers[first - 1], mean_layers[L]
         d = upper - lower
         for k in range(first, L):

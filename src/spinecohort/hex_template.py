@@ -390,13 +390,9 @@ def _place_between(grid_nodes: np.ndarray, lower: Endplate, upper: Endplate, t: 
     return centre + local @ rot.T
 
 
-def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float) -> None:
-    """Place every disc node layer between its two endplate layers, in place.
-
-    hex_nodes: (..., n_layers, n2, 3) (a leading batch axis is allowed).  The CEP layers sit ``cep_mm``
-    from each endplate along the node's own line (so the CEP thickness is exact at every node), and the
-    interior layers are evenly spaced between them.
-    """
+def disc_runs(layers: list[dict]):
+    """(first, end) node-layer index ranges of every disc's interior layers: the endplates bounding a disc
+    are layers ``first - 1`` and ``end``."""
     L = 0
     while L < len(layers):
         if layers[L]["kind"] != "disc":
@@ -405,6 +401,17 @@ def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float) -> None
         first = L
         while layers[L]["kind"] == "disc":
             L += 1
+        yield first, L
+
+
+def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float) -> None:
+    """Place every disc node layer between its two endplate layers, in place.
+
+    hex_nodes: (..., n_layers, n2, 3) (a leading batch axis is allowed).  The CEP layers sit ``cep_mm``
+    from each endplate along the node's own line (so the CEP thickness is exact at every node), and the
+    interior layers are evenly spaced between them.
+    """
+    for first, L in disc_runs(layers):
         lower, upper = hex_nodes[..., first - 1, :, :], hex_nodes[..., L, :, :]
         n = layers[first]["n"]
         d = upper - lower

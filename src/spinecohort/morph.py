@@ -15,6 +15,7 @@ spread to the interior by inverse-distance weighting within the body) closes any
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,7 @@ class MorphParameters:
     bound_mm: float = 0.04  # multilayer stop: mean surface distance
     max_layers: int = 6
     project: bool = True  # final closest-point projection of the surface nodes
+    min_scaled_jacobian: float = 0.3  # a registration layer is kept only if the block stays above this
 
 
 def _faces_of(faces: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +152,8 @@ def _block_hexes(grid: OGrid, n_layers: int) -> np.ndarray:
 
 def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParameters, start_distance: float):
     """Multilayer BCPD (seed Methods B) that keeps a layer only if it brings the surface closer and leaves
-    every element of the block valid; kernel width halves and the Nystrom rank grows per layer.
+    every element of the block valid; kernel width halves and the Nystrom rank grows per layer, and a
+    rejected layer is retried narrower from the last accepted state.
 
     The loop lives here rather than in :func:`spinecohort.registration.multilayer_register` because the
     acceptance test needs the block's hexahedra.
@@ -167,12 +170,13 @@ def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParamet
                                 kd_scale=params.kd_scale, kd_radius=params.kd_radius)
         candidate = res.transform(current)
         dist = float(surface_distance(candidate[surf_ids], target, faces).mean())
-        valid = bool(scaled_jacobian(candidate, hexes).min() > 0) if len(hexes) else True
-        if not (valid and dist < best):
+        # valid = no element below the quality floor (scaled Jacobian), not merely non-inverted
+        valid = bool(scaled_jacobian(candidate, hexes).min() > params.min_scaled_jacobian) if len(hexes) else True
+        if valid and dist < best:
+            current, best = candidate, dist
+            history.append(dict(layer=layer, beta=beta, K=k, iterations=res.iterations, mean_distance=dist))
+        else:  # rejected: the next, narrower kernel starts again from the last accepted state
             log.info("layer %d (beta %.3g) not applied: distance %.4f mm, elements valid: %s", layer, beta, dist, valid)
-            break
-        current, best = candidate, dist
-        history.append(dict(layer=layer, beta=beta, K=k, iterations=res.iterations, mean_distance=dist))
         beta, k = beta * 0.5, min(600, k * 4)
     return current, history
 
@@ -201,6 +205,7 @@ def morph_template(template: HexTemplate, mean_points: np.ndarray, mean_faces: n
         surf_ids = np.flatnonzero(is_surface.ravel())
         target = mean_points[target_ids]
         faces = _faces_of(mean_faces, target_ids)
+        t0 = time.perf_counter()
         before = float(surface_distance(flat[surf_ids], target, faces).mean())
         moved, history = _multilayer_valid(flat, surf_ids, _block_hexes(grid, block.shape[0]), target, faces,
                                            params, before)
@@ -215,7 +220,8 @@ def morph_template(template: HexTemplate, mean_points: np.ndarray, mean_faces: n
         rows.append(dict(part=name, surface_nodes=len(surf_ids), target_vertices=len(target_ids),
                          distance_before_mm=before, distance_registered_mm=after_reg,
                          distance_final_mean_mm=float(dist.mean()), distance_final_max_mm=float(dist.max()),
-                         layers=len(history), iterations=sum(h["iterations"] for h in history)))
+                         layers=len(history), iterations=sum(h["iterations"] for h in history),
+                         seconds=time.perf_counter() - t0))
         log.info("%s: surface distance %.3f -> %.4f mm (BCPD, %d layers accepted) -> %.2e mm", name, before,
                  after_reg, len(history), dist.mean())
         if progress is not None:

@@ -26,6 +26,7 @@ def final_outputs():
         f"{R}/patients/parameters.csv",
         f"{R}/Descriptive_List.xlsx",
         f"{R}/template/morph_report.csv",
+        f"{R}/template/mean_quality.csv",
         f"{R}/template/hex_ssm.npz",
         f"{R}/template/transfer_report.csv",
         f"{R}/release/Mean_Model (Template).inp",

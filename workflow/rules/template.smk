@@ -108,3 +108,21 @@ rule model_files:
         "../../environment.yml"
     script:
         "../scripts/model_files.py"
+
+
+rule template_quality:
+    input:
+        template=f"{R}/template/template.npz",
+        nodes=f"{R}/template/mean_hex.npz",
+    output:
+        elements=f"{R}/template/mean_quality_elements.csv.gz",
+        table3=f"{R}/template/mean_quality.csv",
+    log:
+        f"{LOGS}/template_quality.log",
+    benchmark:
+        f"{BENCH}/template_quality.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/template_quality.py"
