@@ -14,6 +14,7 @@ include: "workflow/rules/cohort.smk"
 include: "workflow/rules/ssm.smk"
 include: "workflow/rules/measure.smk"
 include: "workflow/rules/template.smk"
+include: "workflow/rules/cohort_store.smk"
 
 
 rule all:

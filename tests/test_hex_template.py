@@ -13,16 +13,6 @@ from spinecohort.procrustes import procrustes_align
 from spinecohort.quality import scaled_jacobian
 
 
-@pytest.fixture(scope="module")
-def ssm(small_cohort):
-    return build_ssm(procrustes_align(small_cohort.vertices).aligned)
-
-
-@pytest.fixture(scope="module")
-def template(ssm, small_cohort):
-    return build_template(ssm.mean, small_cohort.faces, small_cohort.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
-
-
 def test_ogrid_counts_and_nucleus_fraction():
     res = TEMPLATE_RESOLUTIONS["coarse"]
     g = ogrid(res)

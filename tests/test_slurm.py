@@ -31,8 +31,8 @@ PROFILE_LOCAL = ROOT / "profiles" / "local"
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile")]
 # the first three stages of the test DAG, reached through the rules at their ends
 CORE_RULES = {"synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
-              "measure_patients", "descriptive_list"}
-TARGETS = ["ssm_quality", "mode_variation_figure", "descriptive_list"]
+              "measure_patients"}
+TARGETS = ["ssm_quality", "mode_variation_figure", "measure_patients"]
 DAEMONS = ("slurmd", "slurmctld", "munged")
 TIMEOUT_S = 600  # a hung snakemake (e.g. the sacct status trap) fails the test instead of blocking CI
 
@@ -147,7 +147,8 @@ def test_every_job_went_through_sbatch_and_slurm_ran_it(runs):
     # the profile's per-rule resources reached sbatch: fixed ones are exact (attempt 1)
     by_rule = {rule: _scontrol(j, runs.slurm.env) for j, rule in submitted.items()}
     assert "mem=2000M" in by_rule["synthetic_cohort"]["TRES"] and by_rule["synthetic_cohort"]["TimeLimit"] == "00:15:00"
-    assert "mem=1000M" in by_rule["descriptive_list"]["TRES"] and by_rule["descriptive_list"]["TimeLimit"] == "00:05:00"
+    # measure_patients: 1000 + 4 x its input (~4.3 MiB) MB, 10 min
+    assert "mem=101" in by_rule["measure_patients"]["TRES"] and by_rule["measure_patients"]["TimeLimit"] == "00:10:00"
     # input-scaled: gpa asks 1000 + 8 x its input (cohort.npz, ~4.3 MiB on the test config) MB;
     # Snakemake's input.size_mb counts MiB
     size_mb = (runs.remote / "results" / "cohort" / "cohort.npz").stat().st_size / 2**20

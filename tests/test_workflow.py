@@ -46,7 +46,17 @@ def test_dag_produces_every_stage_output(test_run):
     comp = pd.read_csv(r / "patients" / "sheet_vs_measured.csv").set_index("parameter")
     assert comp.loc[["PI", "PT", "SS", "LL", "TPA", "GT", "Cobb", "DH_L4-L5"], "max_abs_diff"].max() < 1e-4
     sheets = pd.read_excel(r / "Descriptive_List.xlsx", sheet_name=None)
-    assert list(sheets) == ["Patients", "Notes"] and len(sheets["Patients"]) == 8
+    assert list(sheets) == ["Virtual cohort", "Patients", "Notes"] and len(sheets["Patients"]) == 8
+    # the virtual cohort: 3 modes x 3 levels = 27 models in 3 shards of 9, each measured and quality-checked
+    virtual = sheets["Virtual cohort"]
+    assert len(virtual) == 27 and virtual["model_id"].iloc[13] == "model_00013"
+    assert {"w1", "w3", "PI [deg]", "GAP_assumed_age [points]", "min_sj_after", "invalid_after"} <= set(virtual.columns)
+    assert (virtual.loc[13, ["w1", "w2", "w3"]] == 0).all()
+    # a model keeps inverted hexes only where its repair failed (and the shard's quality table says so)
+    assert ((virtual["invalid_after"] > 0) <= (virtual["invalid_before"] > 0)).all()
+    assert (virtual.loc[virtual["repaired"], "min_sj_after"] > 0).all()
+    from spinecohort.store import check_store
+    assert check_store(r / "cohort.zarr") == []
     assert {"ID", "age", "PI [deg]", "LDI [%]", "DH_L4-L5 [mm]", "GAP [points]"} <= set(sheets["Patients"].columns)
     morph = pd.read_csv(r / "template" / "morph_report.csv")
     assert len(morph) == 18 and (morph["distance_final_mean_mm"] < 0.04).all()  # the seed's bound
@@ -56,7 +66,7 @@ def test_dag_produces_every_stage_output(test_run):
     assert deck.count("*ELEMENT, TYPE=C3D8") == 1 and "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck
     for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
                  "measure_patients", "descriptive_list", "hex_template", "morph_template", "hex_ssm",
-                 "template_inp"):
+                 "template_inp", "init_store"):
         assert (test_run / "logs" / f"{rule}.log").exists()
         assert (r / "benchmarks" / f"{rule}.tsv").exists()
 

@@ -75,6 +75,26 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _query(args: argparse.Namespace) -> int:
+    import pandas as pd
+    import yaml
+
+    from .tables import parse_range, query_models
+
+    filters = args.filters
+    if len(filters) % 2 or not all(f.startswith("--") for f in filters[::2]):
+        raise ValueError(f"query filters must be pairs '--PARAM lo:hi', got {' '.join(filters)}")
+    ranges = {k[2:]: parse_range(v, k[2:]) for k, v in zip(filters[::2], filters[1::2])}
+    r = Path(args.results) if args.results else Path(yaml.safe_load(Path(args.config).read_text())["results"])
+    csv = r / "virtual_cohort.csv"
+    if not csv.is_file():
+        raise ValueError(f"{csv} does not exist; run the pipeline (snakemake) first")
+    ids = query_models(pd.read_csv(csv), ranges)
+    print("\n".join(ids))
+    print(f"{len(ids)} models match", file=sys.stderr)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="spinecohort", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -107,7 +127,16 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--results", type=Path, help="results folder (default: the config's)")
     e.set_defaults(func=_export)
 
-    args = parser.parse_args(argv)
+    q = sub.add_parser("query", help="model IDs of the virtual cohort with parameters in ranges, "
+                                     "e.g. query --PI 50:60 --PT 25: (bounds inclusive, deg / mm)")
+    q.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    q.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    q.set_defaults(func=_query)
+
+    args, extra = parser.parse_known_args(argv)
+    if extra and args.command != "query":
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args.filters = extra
     logging.basicConfig(level=logging.WARNING)
     try:
         return args.func(args)

@@ -61,3 +61,83 @@ def write_descriptive_list(path: str | Path, patients: pd.DataFrame | None = Non
                 cell.font = cell.font.copy(bold=True)
         pd.DataFrame(NOTES, columns=["columns", "unit", "definition"]).to_excel(xl, sheet_name="Notes", index=False)
     commit(tmp, path)
+
+
+#: per-model quality columns of the shard tables carried into the virtual-cohort sheet
+QUALITY_SUMMARY = ["min_sj_before", "min_sj_after", "invalid_before", "invalid_after", "nodes_moved",
+                   "max_displacement_mm", "repaired"]
+
+
+def virtual_cohort_table(params: list[pd.DataFrame], quality: list[pd.DataFrame]) -> pd.DataFrame:
+    """All shards' parameter tables (model_id as ``model_NNNNN``, weights, parameters) joined with the
+    quality summary columns of their Jacobian check / repair, sorted by model ID."""
+    p = pd.concat(params, ignore_index=True)
+    q = pd.concat(quality, ignore_index=True)
+    q = q.assign(model_id=[f"model_{int(i):05d}" for i in q["model_id"]])[["model_id", *QUALITY_SUMMARY]]
+    dup = p["model_id"].duplicated()
+    if dup.any():
+        raise ValueError(f"duplicate model IDs in the shard tables, e.g. {p.loc[dup, 'model_id'].iloc[0]}")
+    out = p.merge(q, on="model_id", how="left", validate="one_to_one")
+    missing = out["min_sj_after"].isna()
+    if missing.any():
+        raise ValueError(f"{int(missing.sum())} models have no quality row, "
+                         f"e.g. {out.loc[missing, 'model_id'].iloc[0]}")
+    return out.sort_values("model_id", ignore_index=True)
+
+
+def tri_vs_hex_summary(diffs: list[pd.DataFrame]) -> pd.DataFrame:
+    """Per parameter over all shards: max |tri - hex| and the mean of the shard means, in its unit."""
+    d = pd.concat(diffs, ignore_index=True)
+    out = d.groupby("parameter", sort=False).agg(max_abs_diff=("max_abs_diff", "max"),
+                                                 mean_abs_diff=("mean_abs_diff", "mean")).reset_index()
+    out.insert(1, "unit", [UNITS.get(c, "") for c in out["parameter"]])
+    return out
+
+
+def write_table_twins(df: pd.DataFrame, csv_path: str | Path) -> list[Path]:
+    """Write ``df`` as CSV and, if pyarrow is installed, as a Parquet twin next to it (same stem)."""
+    csv_path = Path(csv_path)
+    tmp = atomic_path(csv_path)
+    df.to_csv(tmp, index=False, float_format="%.6f")
+    commit(tmp, csv_path)
+    written = [csv_path]
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        return written
+    pq = csv_path.with_suffix(".parquet")
+    df.to_parquet(pq, index=False)
+    return written + [pq]
+
+
+def parse_range(text: str, name: str = "range") -> tuple[float | None, float | None]:
+    """``"50:60"`` -> (50, 60); ``"25:"`` -> (25, None); ``":10"`` -> (None, 10); bounds inclusive."""
+    lo, sep, hi = str(text).partition(":")
+    try:
+        bounds = tuple(float(v) if v.strip() else None for v in (lo, hi))
+    except ValueError:
+        bounds = None
+    if not sep or bounds is None or bounds == (None, None):
+        raise ValueError(f"{name}: '{text}' is not a range; write lo:hi, lo: or :hi (e.g. 50:60)")
+    if None not in bounds and bounds[0] > bounds[1]:
+        raise ValueError(f"{name}: lower bound {bounds[0]} exceeds upper bound {bounds[1]}")
+    return bounds
+
+
+def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> list[str]:
+    """Model IDs of the rows whose every named column lies in its inclusive range (NaN never matches)."""
+    if "model_id" not in table.columns:
+        raise ValueError("the table has no model_id column (is it the virtual cohort CSV?)")
+    keep = np.ones(len(table), bool)
+    for col, (lo, hi) in ranges.items():
+        if col not in table.columns or not pd.api.types.is_numeric_dtype(table[col]):
+            numeric = [c for c in table.columns if pd.api.types.is_numeric_dtype(table[c])]
+            raise ValueError(f"no numeric column '{col}' in the virtual cohort; "
+                             f"columns: {', '.join(numeric[:40])}, ...")
+        v = table[col].to_numpy(float)
+        keep &= ~np.isnan(v)
+        if lo is not None:
+            keep &= v >= lo
+        if hi is not None:
+            keep &= v <= hi
+    return table.loc[keep, "model_id"].astype(str).tolist()

@@ -1,4 +1,5 @@
-# Stage 3: spinopelvic measurement of the patients, and the Descriptive_List workbook.
+# Stage 3: spinopelvic measurement of the patients, and the Descriptive_List workbook (patients + the
+# virtual cohort of stage 5, gathered from its shards).
 
 
 rule measure_patients:
@@ -23,8 +24,13 @@ rule measure_patients:
 rule descriptive_list:
     input:
         patients=f"{R}/patients/parameters.csv",
+        params=expand(f"{R}/shards/{{shard}}.params.csv", shard=SHARDS),
+        quality=expand(f"{R}/shards/{{shard}}.quality.csv", shard=SHARDS),
+        tri_vs_hex=expand(f"{R}/shards/{{shard}}.tri_vs_hex.csv", shard=SHARDS),
     output:
-        f"{R}/Descriptive_List.xlsx",
+        workbook=f"{R}/Descriptive_List.xlsx",
+        virtual=f"{R}/virtual_cohort.csv",
+        tri_vs_hex=f"{R}/virtual_cohort_tri_vs_hex.csv",
     log:
         f"{LOGS}/descriptive_list.log",
     benchmark:

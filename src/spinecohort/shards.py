@@ -1,0 +1,225 @@
+"""Per-shard logic of the virtual-cohort stage: sample, check and repair, measure (one shard = one job).
+
+A shard is a contiguous model-ID range (``store.shard_range``).  ``sample_shard`` samples the triangulated
+and the hexahedral SSM for all its models in chunks (float64 arithmetic, float32 result, so a 343-model
+shard at ~81k nodes stays well under 2 GB), checks every hex of every model with the fused numba kernel
+(``quality.morph_scaled_jacobian_nb``), and untangles the models with inverted hexes exactly as
+``models.hex_points_checked`` does (``repair.untangle`` against the hex mean, one shared
+``UntangleContext``).  Check and repair happen *before* the single ``store.write_shard``, so the store
+only ever holds the coordinates the FE models use; a model that cannot be repaired is kept as sampled
+and reported (``invalid_after > 0``).
+
+``hex_landmarks`` builds a :class:`Landmarks` on the hex model's node numbering (hex nodes, then surface
+nodes), so ``measure.measure`` runs unchanged on the hex coordinates and the tri-vs-hex difference of
+every parameter can be reported.  Millimetres and degrees throughout.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+import pandas as pd
+
+from .hex_ssm import HexSSM
+from .hex_template import HexTemplate
+from .landmarks import LEVELS, Landmarks
+from .measure import measure
+from .pca import SSM
+from .quality import morph_scaled_jacobian_nb, scaled_jacobian
+from .repair import RepairError, prepare_untangle, untangle
+from .store import model_name
+
+#: models sampled per float64 batch: 49 x 81k nodes x 3 x 8 B = 95 MB per array
+DEFAULT_CHUNK = 49
+
+
+def _check_weights(weights: np.ndarray, n_available: int, what: str) -> np.ndarray:
+    w = np.asarray(weights, dtype=np.float64)
+    if w.ndim != 2 or w.shape[0] < 1:
+        raise ValueError(f"weights must be (models, modes) with at least one model, got shape {w.shape}")
+    if w.shape[1] > n_available:
+        raise ValueError(f"weights have {w.shape[1]} modes but the {what} has only {n_available}")
+    if not np.all(np.isfinite(w)):
+        raise ValueError("weights contain non-finite values")
+    return w
+
+
+def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray,
+                  chunk: int = DEFAULT_CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """(tri (S, N, 3), hex (S, n_nodes, 3)) float32 mm of ``SSM.sample`` / ``HexSSM.sample`` for weights (S, m).
+
+    Computed in float64 batches of ``chunk`` models (one BLAS product each) and cast to float32, the
+    store's dtype, so the float64 intermediate never holds the whole shard.
+    """
+    w = _check_weights(weights, min(ssm.n_modes, hex_ssm.fields.shape[0]), "SSM")
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    m = w.shape[1]
+    tri = np.empty((len(w), *ssm.mean.shape), np.float32)
+    hexp = np.empty((len(w), *hex_ssm.mean.shape), np.float32)
+    df_tri = ssm.deformation_fields(m).reshape(m, -1)
+    df_hex = hex_ssm.fields[:m].reshape(m, -1)
+    for i in range(0, len(w), chunk):
+        wb = w[i:i + chunk]
+        tri[i:i + chunk] = (ssm.mean.ravel() + wb @ df_tri).reshape(len(wb), *ssm.mean.shape)
+        hexp[i:i + chunk] = (hex_ssm.mean.ravel() + wb @ df_hex).reshape(len(wb), *hex_ssm.mean.shape)
+    return tri, hexp
+
+
+def _min_by_part(sj: np.ndarray, part: np.ndarray) -> dict[str, np.ndarray]:
+    """Per tissue label: min scaled Jacobian per model, sj (S, E) -> {tissue: (S,)}."""
+    return {t: sj[:, part == t].min(axis=1) for t in np.unique(part)}
+
+
+def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarray,
+                     model_ids: np.ndarray, repair: bool = True, log=None) -> pd.DataFrame:
+    """Scaled Jacobian of every hex of every model; untangle the models with inverted hexes **in place**.
+
+    hex_points (S, n_nodes, 3) float32 mm (the sampled coordinates of ``weights`` (S, m)): the check runs
+    on the float64 SSM formula (fused kernel), the repair on that float64 sample, and repaired models
+    are written back into ``hex_points``.  Returns one quality row per model: ``min_sj_before/after``,
+    ``invalid_before/after`` (hexes with sJ <= 0), ``nodes_moved``, ``max_displacement_mm``, ``repaired``,
+    ``repair_error`` (empty or the RepairError message) and ``min_sj_<tissue>`` (after repair).
+    repair=False only checks (the rows then have invalid_after == invalid_before).
+    """
+    w = _check_weights(weights, hex_ssm.fields.shape[0], "hex SSM")
+    if hex_points.shape != (len(w), *hex_ssm.mean.shape):
+        raise ValueError(f"hex_points must be {(len(w), *hex_ssm.mean.shape)}, got {hex_points.shape}")
+    n = template.n_hex_nodes
+    hexes = np.ascontiguousarray(template.hexes, dtype=np.int64)
+    mean = np.ascontiguousarray(hex_ssm.mean[:n])
+    fields = np.ascontiguousarray(hex_ssm.fields[: w.shape[1], :n])
+    sj = morph_scaled_jacobian_nb(mean, fields, np.ascontiguousarray(w), hexes)  # (S, E)
+    invalid = (sj <= 0).sum(axis=1)
+    rows = pd.DataFrame({"model_id": np.asarray(model_ids, dtype=np.int64), "min_sj_before": sj.min(axis=1),
+                         "invalid_before": invalid, "nodes_moved": 0, "max_displacement_mm": 0.0,
+                         "repaired": False, "repair_error": ""})
+    bad = np.flatnonzero(invalid)
+    if len(bad) and repair:
+        ctx = prepare_untangle(hexes, mean)  # topology + reference quality, shared by every model
+        for k in bad:  # few models per shard (~2 % on the default grid); untangle is per mesh
+            pts = mean + np.tensordot(w[k], fields, axes=(0, 0))
+            try:
+                fixed, rep = untangle(pts, hexes, mean, context=ctx)
+            except RepairError as exc:
+                rows.loc[k, "repair_error"] = f"{model_name(int(model_ids[k]))}: {exc}"
+                if log is not None:
+                    log.warning("%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])),
+                                w[k].tolist(), exc)
+                continue
+            hex_points[k, :n] = fixed
+            sj[k] = scaled_jacobian(fixed, hexes)
+            rows.loc[k, ["nodes_moved", "max_displacement_mm", "repaired"]] = (
+                int(len(rep.moved_nodes)), float(rep.max_displacement_mm), True)
+    rows["min_sj_after"] = sj.min(axis=1)
+    rows["invalid_after"] = (sj <= 0).sum(axis=1)
+    for tissue, v in _min_by_part(sj, template.part_of_hex()).items():
+        rows[f"min_sj_{tissue}"] = v
+    cols = ["model_id", "min_sj_before", "min_sj_after", "invalid_before", "invalid_after", "nodes_moved",
+            "max_displacement_mm", "repaired", "repair_error"]
+    return rows[cols + [c for c in rows.columns if c not in cols]]
+
+
+def sample_shard(ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, weights: np.ndarray, model_ids: np.ndarray,
+                 chunk: int = DEFAULT_CHUNK, repair: bool = True,
+                 log=None) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, dict]:
+    """Sample, check and repair one shard -> (tri, hex, quality table, timing dict in s)."""
+    t0 = time.perf_counter()
+    tri, hexp = sample_points(ssm, hex_ssm, weights, chunk)
+    t1 = time.perf_counter()
+    quality = check_and_repair(hexp, template, hex_ssm, weights, model_ids, repair, log)
+    t2 = time.perf_counter()
+    return tri, hexp, quality, {"sample_s": t1 - t0, "check_repair_s": t2 - t1}
+
+
+# ---------------------------------------------------------------------------------------- landmarks
+def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
+    """Landmarks of the hex model (node numbering of ``template.nodes``) from the cohort's ``landmarks``.
+
+    Endplates = node sets ``EP_SUP_<lvl>``, ``EP_INF_<lvl>``, ``EP_SUP_S1`` (whole O-grid layers, centrally
+    symmetric, so their node mean is the endplate centre); rims = the outer ring of those layers;
+    femoral heads and pubic symphysis = the surface nodes carrying the cohort's landmark vertices; body =
+    nodes of the ``V_<lvl>_*`` hexes.  Part labels: body nodes ``body_<lvl>``, disc nodes ``disc`` (appended
+    to the cohort's part names), surface nodes their vertex's label.
+    """
+    n_hex = template.n_hex_nodes
+    sv = np.asarray(template.surface_vertex)
+    order = np.argsort(sv, kind="stable")
+
+    def surface_nodes(vertices: np.ndarray, name: str) -> np.ndarray:
+        v = np.asarray(vertices)
+        pos = np.searchsorted(sv, v, sorter=order)
+        pos = np.clip(pos, 0, len(sv) - 1)
+        found = sv[order[pos]] == v
+        if not found.all():
+            raise ValueError(f"hex landmarks: {int((~found).sum())} vertices of {name} are not surface nodes "
+                             "of the template")
+        return n_hex + order[pos]
+
+    outer = np.asarray(template.grid.outer)
+    ns = template.nsets
+    sup = {lv: ns[f"EP_SUP_{lv}"] for lv in (*LEVELS, "S1")}
+    inf = {lv: ns[f"EP_INF_{lv}"] for lv in LEVELS}
+    body = {}
+    for lv in LEVELS:
+        sets = [template.elsets[k] for k in template.elsets
+                if k.startswith(f"V_{lv}_") and template.elset_kind[k] == "hex"]
+        if not sets:
+            raise ValueError(f"hex landmarks: the template has no V_{lv}_* element set")
+        body[lv] = np.unique(template.hexes[np.concatenate(sets)])
+    names = tuple(landmarks.part_names) + ("disc",)
+    part = np.full(template.n_nodes, len(names) - 1, dtype=np.int16)
+    part[n_hex:] = landmarks.part[sv]
+    for lv, nodes in body.items():
+        part[nodes] = names.index(f"body_{lv}") if f"body_{lv}" in names else len(names) - 1
+    return Landmarks(
+        part=part, part_names=names,
+        endplate_sup=sup, endplate_inf=inf,
+        rim_sup={lv: v[outer] for lv, v in sup.items()}, rim_inf={lv: v[outer] for lv, v in inf.items()},
+        femoral_head={k: surface_nodes(v, f"femoral_head[{k}]") for k, v in landmarks.femoral_head.items()},
+        body=body, pubic_symphysis=surface_nodes(landmarks.pubic_symphysis, "pubic_symphysis"),
+        meta={"source": "hex template node sets", **landmarks.meta},
+    )
+
+
+# ------------------------------------------------------------------------------------------ measure
+def measure_shard(tri: np.ndarray, hexp: np.ndarray, weights: np.ndarray, model_ids: np.ndarray,
+                  tri_landmarks: Landmarks, hex_lm: Landmarks, **measure_kw) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Parameters of a shard on the triangulated points, and their difference to the hex points.
+
+    Returns (params: model_id, w1..wm [SD], every parameter of ``measure`` on the tri points;
+    tri_vs_hex: per numeric parameter, max and mean |tri - hex| over the shard's models, in its unit).
+    ``measure_kw``: vertical, assumed_age, c7_proxy (no age: virtual models have none).
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    if len(w) != len(tri) or len(w) != len(hexp) or len(w) != len(model_ids):
+        raise ValueError(f"shard arrays disagree on the model count: weights {len(w)}, tri {len(tri)}, "
+                         f"hex {len(hexp)}, ids {len(model_ids)}")
+    p_tri = measure(tri, tri_landmarks, **measure_kw)
+    p_hex = measure(hexp, hex_lm, **measure_kw)
+    head = pd.DataFrame({"model_id": model_name(np.asarray(model_ids)),
+                         **{f"w{i + 1}": w[:, i] for i in range(w.shape[1])}})
+    params = pd.concat([head, p_tri], axis=1)
+    num = [c for c in p_tri.columns if pd.api.types.is_numeric_dtype(p_tri[c])
+           and not pd.api.types.is_bool_dtype(p_tri[c])]
+    d = np.abs(p_tri[num].to_numpy(float) - p_hex[num].to_numpy(float))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns (GAP without age) stay NaN
+        diff = pd.DataFrame({"parameter": num, "max_abs_diff": np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0),
+                             "mean_abs_diff": np.nanmean(d, axis=0)})
+    diff.loc[~np.isfinite(diff["max_abs_diff"]), "max_abs_diff"] = np.nan
+    return params, diff
+
+
+def shard_models_of(path, shard: int) -> tuple[np.ndarray, np.ndarray]:
+    """(model IDs (S,), weights (S, m) in SD) of ``shard`` from the store's own metadata (not the config)."""
+    import zarr
+
+    from .store import shard_range, weights_of
+
+    attrs = dict(zarr.open_group(str(path), mode="r").attrs)
+    start, stop = shard_range(int(shard), attrs["shard_models"], attrs["n_models"])
+    ids = np.arange(start, stop)
+    return ids, weights_of(ids, attrs["n_modes"], attrs["levels"])

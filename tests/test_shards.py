@@ -1,0 +1,160 @@
+"""The virtual-cohort shard step: sample -> check/repair -> store -> measure, on the small cohort fixture."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from spinecohort.cli import main
+from spinecohort.hex_ssm import HexSSM, transfer_fields
+from spinecohort.landmarks import Landmarks
+from spinecohort.measure import measure
+from spinecohort.quality import scaled_jacobian
+from spinecohort.repair import boundary_nodes
+from spinecohort.shards import check_and_repair, hex_landmarks, measure_shard, sample_points, sample_shard, \
+    shard_models_of
+from spinecohort.store import create_store, error_bound_mm, read_shard, weights_of, write_shard
+from spinecohort.tables import parse_range, query_models, virtual_cohort_table
+
+LEVELS = [-1.0, 0.0, 1.0]  # 3 modes x 3 levels = 27 models, shards of 9: shard 1 = IDs 9..17, mean = 13
+N_MODES = 3
+
+
+@pytest.fixture(scope="module")
+def hex_ssm(template, ssm, small_cohort):
+    # the unmorphed template on the SSM mean is a valid hex mesh: enough for the shard logic
+    return transfer_fields(template, template.nodes, ssm, small_cohort.landmarks, N_MODES, "smooth")
+
+
+@pytest.fixture(scope="module")
+def shard1(tmp_path_factory, ssm, hex_ssm, template):
+    path = tmp_path_factory.mktemp("store") / "cohort.zarr"
+    create_store(path, ssm.mean.shape[0], hex_ssm.mean.shape[0], N_MODES, LEVELS, shard_models=9)
+    ids, w = shard_models_of(path, 1)
+    tri, hexp, quality, _ = sample_shard(ssm, hex_ssm, template, w, ids)
+    write_shard(path, 1, tri, hexp)
+    return path, ids, w, quality
+
+
+def test_shard_ids_and_weights_come_from_the_store(shard1):
+    path, ids, w, _ = shard1
+    assert ids.tolist() == list(range(9, 18))
+    assert w[4].tolist() == [0.0, 0.0, 0.0]  # model 13 = digits (1, 1, 1) = all weights 0
+    assert w[0].tolist() == [0.0, -1.0, -1.0]  # model 9 = digits (1, 0, 0)
+
+
+def test_stored_models_equal_the_ssm_formula_within_the_error_bound(shard1, ssm, hex_ssm):
+    path, ids, w, quality = shard1
+    bound = error_bound_mm("int32-delta")  # 0.5 um quantum/2 + float32 roundings = 0.00059 mm
+    tri = read_shard(path, 1, "tri/points")
+    hexp = read_shard(path, 1, "hex/points")
+    assert np.abs(tri - ssm.sample(w)).max() <= bound
+    untouched = ~quality["repaired"].to_numpy()
+    assert np.abs(hexp[untouched] - hex_ssm.sample(w[untouched])).max() <= bound
+    # the batched float32 sampler is the formula too (before any quantization: float32 rounding only)
+    t32, h32 = sample_points(ssm, hex_ssm, w, chunk=4)
+    assert np.abs(t32 - ssm.sample(w)).max() < 1e-4 and np.abs(h32 - hex_ssm.sample(w)).max() < 1e-4
+
+
+def test_every_stored_model_has_positive_scaled_jacobians(shard1, template):
+    path, _, _, quality = shard1
+    hexp = read_shard(path, 1, "hex/points").astype(float)
+    n = template.n_hex_nodes
+    sj = np.array([scaled_jacobian(h[:n], template.hexes).min() for h in hexp])
+    assert (sj > 0).all() and (quality["invalid_after"] == 0).all()
+    # the table's value is the stored model's, up to the 0.001 mm quantum
+    assert np.abs(sj - quality["min_sj_after"].to_numpy()).max() < 1e-3
+    assert {"min_sj_vertebra", "min_sj_NP", "min_sj_AF", "min_sj_CEP"} <= set(quality.columns)
+
+
+def test_mean_model_measured_from_the_store_equals_the_ssm_mean(shard1, ssm, template, small_cohort):
+    path, ids, w, _ = shard1
+    lm = small_cohort.landmarks
+    params, diff = measure_shard(read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex/points"), w, ids,
+                                 lm, hex_landmarks(template, lm))
+    row = params.set_index("model_id").loc["model_00013"]
+    truth = measure(ssm.mean, lm).iloc[0]
+    for col in ("PI", "PT", "SS", "LL", "LL_L4S1", "GT", "TPA", "Cobb"):
+        assert row[col] == pytest.approx(truth[col], abs=1e-3), col  # deg; float32 + 0.001 mm quantum
+    # thoracic endplates are small (~10 mm): 0.5 um quantization tilts a plane fit by up to ~1e-3 deg each,
+    # and kyphosis adds two of them
+    assert row["TK_T4T12"] == pytest.approx(truth["TK_T4T12"], abs=3e-3)
+    assert row["GAP_assumed_age"] == truth["GAP_assumed_age"]
+    d = diff.set_index("parameter")["max_abs_diff"]
+    # femoral heads are surface nodes = SSM vertices in both models: same sphere fit up to the quantum
+    assert d["FH_radius_L"] < 1e-3 and d["HA_width"] < 1e-3
+    assert len(params) == 9 and list(params.columns[:4]) == ["model_id", "w1", "w2", "w3"]
+
+
+def test_hex_landmarks_name_the_same_places_as_the_tri_landmarks(template, small_cohort):
+    lm = small_cohort.landmarks
+    hl = hex_landmarks(template, lm)
+    hl.validate(template.n_nodes, "hex landmarks")
+    for side in ("L", "R"):  # surface nodes carry the mean's vertices exactly
+        assert np.array_equal(template.nodes[hl.femoral_head[side]], template.nodes[template.n_hex_nodes:][
+            np.searchsorted(template.surface_vertex, lm.femoral_head[side])])
+    n2 = len(template.grid.nodes)  # an endplate is a whole O-grid layer, its rim the outer ring
+    assert len(hl.endplate_sup["L4"]) == n2 and len(hl.rim_sup["L4"]) == len(template.grid.outer)
+    assert set(hl.rim_inf["T7"]) <= set(hl.endplate_inf["T7"])
+    bad = Landmarks(**{**lm.__dict__, "pubic_symphysis": lm.body["L3"][:3]})  # body vertices: no surface node
+    with pytest.raises(ValueError, match="pubic_symphysis are not surface nodes"):
+        hex_landmarks(template, bad)
+
+
+def test_deliberately_inverted_elements_are_untangled(template, hex_ssm):
+    n = template.n_hex_nodes
+    interior = np.setdiff1d(np.arange(n), boundary_nodes(template.hexes))
+    node = interior[len(interior) // 2]
+    # mode 1 drags one interior node 1.5 edge lengths sideways: its elements fold at w1 = +1
+    nb = np.unique(template.hexes[np.any(template.hexes == node, axis=1)])
+    edge = np.median(np.linalg.norm(hex_ssm.mean[nb] - hex_ssm.mean[node], axis=1))
+    fields = hex_ssm.fields.copy()
+    fields[0, node] += [1.5 * edge, 0.0, 0.0]
+    bent = HexSSM(hex_ssm.mean, fields, hex_ssm.eigenvalues, "test")
+    w = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    pts = bent.sample(w).astype(np.float32)
+    raw = check_and_repair(pts.copy(), template, bent, w, np.array([5, 6]), repair=False)
+    assert raw.loc[0, "invalid_before"] > 0 and raw.loc[0, "invalid_after"] == raw.loc[0, "invalid_before"]
+    q = check_and_repair(pts, template, bent, w, np.array([5, 6]))
+    assert q.loc[0, "invalid_before"] > 0 and q.loc[0, "invalid_after"] == 0 and q.loc[0, "repaired"]
+    assert q.loc[0, "nodes_moved"] >= 1 and scaled_jacobian(pts[0, :n].astype(float), template.hexes).min() > 0
+    # the valid model is untouched
+    assert q.loc[1, "invalid_before"] == 0 and q.loc[1, "nodes_moved"] == 0 and not q.loc[1, "repaired"]
+    assert np.array_equal(pts[1], bent.sample(w[1]).astype(np.float32))
+
+
+def test_bad_weights_are_rejected(ssm, hex_ssm):
+    with pytest.raises(ValueError, match="weights have 9 modes but the SSM has only"):
+        sample_points(ssm, hex_ssm, np.zeros((2, 9)))
+    with pytest.raises(ValueError, match="non-finite"):
+        sample_points(ssm, hex_ssm, np.full((1, 3), np.nan))
+
+
+def test_parse_range_and_query():
+    assert parse_range("50:60") == (50.0, 60.0) and parse_range("25:") == (25.0, None)
+    assert parse_range(":-5") == (None, -5.0)
+    for bad in ("50", ":", "a:b", "60:50"):
+        with pytest.raises(ValueError):
+            parse_range(bad, "PI")
+    t = pd.DataFrame({"model_id": ["model_00000", "model_00001", "model_00002"], "PI": [49.9, 50.0, 61.0],
+                      "PT": [30.0, 24.9, np.nan]})
+    assert query_models(t, {"PI": (50.0, 60.0)}) == ["model_00001"]  # inclusive bounds
+    assert query_models(t, {"PT": (25.0, None)}) == ["model_00000"]  # NaN never matches
+    with pytest.raises(ValueError, match="no numeric column 'XX'"):
+        query_models(t, {"XX": (0.0, None)})
+
+
+def test_virtual_table_joins_quality_and_cli_query_prints_ids(tmp_path, capsys):
+    params = [pd.DataFrame({"model_id": ["model_00001", "model_00000"], "w1": [0.0, -1.0], "PI": [55.0, 52.0]}),
+              pd.DataFrame({"model_id": ["model_00002"], "w1": [1.0], "PI": [58.0]})]
+    quality = [pd.DataFrame({"model_id": [0, 1, 2], "min_sj_before": [0.3, -0.1, 0.4], "min_sj_after": [0.3, 0.2, 0.4],
+                             "invalid_before": [0, 3, 0], "invalid_after": [0, 0, 0], "nodes_moved": [0, 12, 0],
+                             "max_displacement_mm": [0.0, 1.5, 0.0], "repaired": [False, True, False]})]
+    v = virtual_cohort_table(params, quality)
+    assert v["model_id"].tolist() == ["model_00000", "model_00001", "model_00002"]
+    assert v.loc[1, "invalid_before"] == 3 and v.loc[1, "nodes_moved"] == 12
+    with pytest.raises(ValueError, match="duplicate model IDs"):
+        virtual_cohort_table(params + params[1:], quality)
+    v.to_csv(tmp_path / "virtual_cohort.csv", index=False)
+    assert main(["query", "--PI", "53:", "--w1", ":0.5", "--results", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.split() == ["model_00001"]
+    assert main(["query", "--PI", "oops", "--results", str(tmp_path)]) == 2
