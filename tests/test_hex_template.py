@@ -6,7 +6,7 @@ import pytest
 from spinecohort.abaqus import read_inp, write_inp
 from spinecohort.fe_export import fe_model
 from spinecohort.hex_ssm import inverted_over_grid, transfer_fields
-from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, HexTemplate, build_template, ogrid
+from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, HexTemplate, ogrid
 from spinecohort.landmarks import DISCS, LEVELS
 from spinecohort.pca import build_ssm
 from spinecohort.procrustes import procrustes_align

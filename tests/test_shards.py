@@ -12,7 +12,7 @@ from spinecohort.quality import scaled_jacobian
 from spinecohort.repair import boundary_nodes
 from spinecohort.shards import check_and_repair, hex_landmarks, measure_shard, sample_points, sample_shard, \
     shard_models_of
-from spinecohort.store import create_store, error_bound_mm, read_shard, weights_of, write_shard
+from spinecohort.store import create_store, error_bound_mm, read_shard, write_shard
 from spinecohort.tables import parse_range, query_models, virtual_cohort_table
 
 LEVELS = [-1.0, 0.0, 1.0]  # 3 modes x 3 levels = 27 models, shards of 9: shard 1 = IDs 9..17, mean = 13

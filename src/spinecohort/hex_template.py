@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation, Slerp
 
-from .landmarks import DISCS, LEVELS, Landmarks
+from .landmarks import LEVELS, Landmarks
 
 LIGAMENT_GROUPS = ("ISL", "SSL", "LF", "CL", "ITL", "PLL", "ALL")
 

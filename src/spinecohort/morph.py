@@ -128,11 +128,9 @@ def _projection_groups(shape, grid, core_cells, name, landmarks, mean_points, me
         patch = getattr(landmarks, key)[name]
         groups.append((ids[layer], mean_points[patch], _faces_of(mean_faces, patch)))
     caps = np.concatenate([landmarks.endplate_inf[name], landmarks.endplate_sup[name]])
-    wall = np.setdiff1d(landmarks.body[name], caps)
     wall_faces = _faces_of(mean_faces, landmarks.body[name])
     keep = ~np.isin(landmarks.body[name][wall_faces], caps).all(1)  # triangles not lying in a cap
     groups.append((ids[1:-1, grid.outer].ravel(), target, wall_faces[keep]))
-    del wall
     outer_of, frac = ray_weights(grid, core_cells)
     inner = np.flatnonzero((outer_of >= 0) & (frac < 1.0))
     layer_ids = np.arange(nl)
@@ -190,9 +188,6 @@ def morph_template(template: HexTemplate, mean_points: np.ndarray, mean_faces: n
     nodes = template.nodes.copy()
     hex_layers = nodes[: template.n_hex_nodes].reshape(len(layers), n2, 3)
     rows = []
-    kw = dict(lam=params.lam, beta=params.beta, gamma=params.gamma, K=params.K, w=params.w,
-              max_iter=params.max_iter, tol=params.tol, downsample_radius=params.downsample_radius_mm,
-              kd_sigma=params.kd_sigma, kd_scale=params.kd_scale, kd_radius=params.kd_radius)
     parts = [(lv, [i for i, ly in enumerate(layers) if ly["kind"] == "body" and ly["level"] == lv],
               landmarks.body[lv]) for lv in LEVELS]
     parts.append(("S1", [0], landmarks.endplate_sup["S1"]))

@@ -351,7 +351,7 @@ def _e_step(x, y_hat, sigma2, row_factor, out_const, use_kdtree, kd_radius):
 def _bcpd(y, x, beta, lam, w, gamma, n_landmarks, max_iter, tol, kd_sigma, kd_scale, kd_radius,
           similarity, seed):
     """BCPD variational loop in normalised coordinates (alpha uniform: BCPD's kappa = infinity)."""
-    m, n = len(y), len(x)
+    m = len(y)
     landmarks = y[farthest_point_sample(y, n_landmarks, seed)]
     phi, b = _nystrom_basis(y, landmarks, beta)
     volume = float(np.prod(np.ptp(x, axis=0) + 1e-9))
