@@ -15,6 +15,10 @@ include: "workflow/rules/ssm.smk"
 include: "workflow/rules/measure.smk"
 include: "workflow/rules/template.smk"
 include: "workflow/rules/cohort_store.smk"
+include: "workflow/rules/personalize.smk"
+include: "workflow/rules/figures.smk"
+include: "workflow/rules/rom.smk"
+include: "workflow/rules/release.smk"  # last: its input function uses every stage's targets
 
 
 rule all:

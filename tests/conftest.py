@@ -1,3 +1,8 @@
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -28,3 +33,15 @@ def ssm(small_cohort):
 def template(ssm, small_cohort):
     """The coarse hex template placed on the small cohort's SSM mean (not morphed)."""
     return build_template(ssm.mean, small_cohort.faces, small_cohort.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
+
+
+@pytest.fixture(scope="session")
+def test_run(tmp_path_factory):
+    """The whole DAG (including the release) run once on .test/config in a fresh work dir; returns it."""
+    root = Path(__file__).resolve().parents[1]
+    work = tmp_path_factory.mktemp("dag")
+    shutil.copytree(root / ".test" / "config", work / "config")
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "--directory", str(work),
+                           "-j2"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return work

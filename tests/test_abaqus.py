@@ -256,3 +256,30 @@ def test_run_ccx_raises_on_unknown_keyword_that_ccx_only_warns_about(tmp_path):
     # the same deck passes when the caller allows that warning explicitly
     result = run_ccx(path, tmp_path / "run2", allowed_warnings=(r"card image",))
     assert result.returncode == 0
+
+
+def test_orientation_is_written_and_checked():
+    from spinecohort.abaqus import Orientation
+
+    model = column_model()
+    model.orientations.append(Orientation("OR_AF", (5.0, 5.0, 0.0), (5.0, 5.0, 60.0)))
+    model.sections[1] = Section("UPPER", "ELASTIC_FIBER_AF", orientation="OR_AF")
+    text = model_to_inp_text(model)
+    assert "*ORIENTATION, NAME=OR_AF, SYSTEM=CYLINDRICAL\n5.0, 5.0, 0.0, 5.0, 5.0, 60.0\n" in text
+    assert "*SOLID SECTION, ELSET=UPPER, MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_AF\n" in text
+    model.sections[1] = Section("UPPER", "ELASTIC_FIBER_AF", orientation="OR_NONE")
+    with pytest.raises(ValueError, match="orientation 'OR_NONE' is unknown"):
+        validate_model(model)
+
+
+def test_data_check_replaces_the_fibre_law_by_its_ground_substance():
+    # ccx 2.20 segfaults on *NO ANALYSIS with an ELASTIC_FIBER element: the check uses Neo-Hooke C10, D1
+    # (D1 = 0 -> 1 / (20 C10), what the fibre law itself substitutes: 1 / (20 * 0.35) = 0.142857...)
+    from spinecohort.calculix import fibre_ground_substance
+
+    text = model_to_inp_text(column_model())
+    out = fibre_ground_substance(text)
+    assert "*USER MATERIAL" not in out
+    assert "*MATERIAL, NAME=ELASTIC_FIBER_AF\n*HYPERELASTIC, NEO HOOKE\n0.35, 0.14285714285714285\n" in out
+    assert out.replace(out[out.index("*MATERIAL, NAME=ELASTIC_FIBER_AF"):], "") == \
+        text.replace(text[text.index("*MATERIAL, NAME=ELASTIC_FIBER_AF"):], "")

@@ -72,7 +72,8 @@ def test_model_ids_and_repair_of_an_inverted_model(morphed, small_cohort, tmp_pa
 
 def test_extreme_models_of_a_tiny_ssm_are_refused_by_name(morphed, small_cohort, tmp_path):
     """With 8 patients, +-3 SD of the first modes pushes L5 into the sacrum in the triangulated SSM itself
-    (a collapsed L5-S1 disc): no untangling can fix that, and the error names the model."""
+    (a collapsed L5-S1 disc): without the disc-contact distraction (tests/test_contact.py) no untangling
+    can fix that, and the error names the model."""
     ssm, t, nodes, _ = morphed
     hssm = transfer_fields(t, nodes, ssm, small_cohort.landmarks, 3, "smooth")
     w = grid_weights(3, [-3, 0, 3]).astype(float)

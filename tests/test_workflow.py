@@ -19,13 +19,8 @@ def run(workdir, *args):
                           capture_output=True, text=True, timeout=600)
 
 
-@pytest.fixture(scope="module")
-def test_run(tmp_path_factory):
-    work = tmp_path_factory.mktemp("dag")
-    shutil.copytree(ROOT / ".test" / "config", work / "config")
-    proc = run(work)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return work
+# test_run (the whole DAG on the test config, once per session) lives in conftest.py: tests/test_release.py
+# uses its release too.
 
 
 def test_dag_produces_every_stage_output(test_run):
@@ -62,7 +57,7 @@ def test_dag_produces_every_stage_output(test_run):
     assert len(morph) == 18 and (morph["distance_final_mean_mm"] < 0.04).all()  # the seed's bound
     transfer = pd.read_csv(r / "template" / "transfer_report.csv").set_index("method")
     assert transfer.loc["smooth", "inverted_element_fraction"] < transfer.loc["nearest", "inverted_element_fraction"] / 10
-    deck = (r / "release" / "Mean_Model (Template).inp").read_text()
+    deck = (r / "template" / "Mean_Model (Template).inp").read_text()
     assert deck.count("*ELEMENT, TYPE=C3D8") == 1 and "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck
     for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
                  "measure_patients", "descriptive_list", "hex_template", "morph_template", "hex_ssm",
@@ -94,7 +89,7 @@ def test_one_model_by_target_file_runs_only_that_job(test_run):
     assert proc.returncode == 0, proc.stderr[-2000:]
     deck = (test_run / target).read_text()
     assert "weights (SD) [0.0, 0.0, 0.0]" in deck
-    mean = (test_run / "results" / "release" / "Mean_Model (Template).inp").read_text()
+    mean = (test_run / "results" / "template" / "Mean_Model (Template).inp").read_text()
     node_block = lambda text: text.split("*NODE")[1].split("*ELEMENT")[0].splitlines()[1:]  # noqa: E731
     assert node_block(deck) == node_block(mean)  # all weights 0: the mean model's coordinates
 
@@ -102,7 +97,7 @@ def test_one_model_by_target_file_runs_only_that_job(test_run):
 def test_config_change_reruns_only_the_rules_that_use_it(test_run):
     # params are rerun triggers: a new hex type changes only the template deck (and nothing upstream)
     assert _planned_jobs(test_run, "--config", "template={'resolution': 'coarse', 'hex_type': 'C3D8I'}") == \
-        {"template_inp": 1, "all": 1}
+        {"template_inp": 1, "release": 1, "all": 1}  # the release ships the deck
 
 
 def test_broken_user_stl_fails_with_the_file_named_and_no_output(test_run, tmp_path):
@@ -137,3 +132,62 @@ def test_lint_is_clean():
     proc = subprocess.run([*SNAKEMAKE, "--lint", "-s", str(ROOT / "Snakefile"), "--directory", str(ROOT)],
                           capture_output=True, text=True, timeout=120)
     assert "Congratulations, your workflow is in a good condition!" in proc.stdout + proc.stderr
+
+
+def _store_files(store: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def run_copy(test_run, tmp_path):
+    """A private copy of the finished test run (outputs, logs and Snakemake's metadata) to damage."""
+    work = tmp_path / "copy"
+    shutil.copytree(test_run, work, symlinks=True)
+    return work
+
+
+def test_a_corrupted_shard_is_detected_and_only_it_is_rebuilt(run_copy):
+    store = run_copy / "results" / "cohort.zarr"
+    before = _store_files(store)
+    obj = store / "hex" / "points" / "c" / "1" / "0" / "0"
+    data = bytearray(obj.read_bytes())
+    data[len(data) // 2] ^= 0x01  # one flipped bit, same size: only the sha256 can tell
+    obj.write_bytes(bytes(data))
+    # the rule fails naming the shard and what to do
+    proc = run(run_copy, "--forcerun", "check_store", "results/store_check.csv")
+    assert proc.returncode != 0
+    assert "shard 00001: hex/points/c/1/0/0 is corrupt" in proc.stderr and "check-store" in proc.stderr
+    cli = [sys.executable, "-m", "spinecohort.cli", "check-store", str(store)]
+    proc = subprocess.run(cli, capture_output=True, text=True)
+    assert proc.returncode == 1 and "shard 00001" in proc.stdout
+    assert subprocess.run([*cli, "--rebuild"], capture_output=True, text=True).returncode == 0
+    assert not (run_copy / "results" / "shards" / "00001.sample.json").exists()
+    # exactly that shard's job (and the check) run again, then the store is byte-identical to the original
+    assert _planned_jobs(run_copy, "results/store_check.csv") == {"sample_shard": 1, "check_store": 1}
+    proc = run(run_copy, "results/store_check.csv")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert _store_files(store) == before
+
+
+def test_a_shard_job_killed_mid_write_leaves_no_record_and_the_rerun_is_byte_identical(run_copy):
+    import os
+
+    from spinecohort.store import FAULT_KILL_ENV, check_store, invalidate_shard
+
+    store = run_copy / "results" / "cohort.zarr"
+    before = _store_files(store)
+    invalidate_shard(store, 2)  # a run in progress: shard 2 not written yet, the store check not run yet
+    for f in (run_copy / "results" / "shards").glob("00002.*"):
+        f.unlink()
+    (run_copy / "results" / "store_check.csv").unlink()
+    # the job writes tri/points, then is SIGKILLed before hex/points (a node failure mid-write)
+    env = {**os.environ, FAULT_KILL_ENV: "2"}
+    proc = subprocess.run([*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "--directory", str(run_copy), "-j1",
+                           "results/shards/00002.sample.json"], capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode != 0 and "sample_shard" in proc.stderr
+    assert (store / "tri" / "points" / "c" / "2" / "0" / "0").exists()  # killed mid-write, not before it
+    assert not (run_copy / "results" / "shards" / "00002.sample.json").exists()  # no sentinel
+    assert check_store(store) == [2]
+    proc = run(run_copy, "results/store_check.csv")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert check_store(store) == [] and _store_files(store) == before

@@ -69,18 +69,30 @@ class UserMaterial:
 
 
 @dataclass(frozen=True)
+class Orientation:
+    """A cylindrical local system (*ORIENTATION, SYSTEM=CYLINDRICAL): the axis runs from point a to point b
+    (mm).  Local directions: 1 radial, 2 circumferential, 3 axial (a -> b).  Used for the annulus fibres
+    of each disc, whose two families lie in the circumferential-axial plane."""
+    name: str
+    axis_a_mm: tuple[float, float, float]
+    axis_b_mm: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
 class Section:
     """Assigns element set `elset` a material (solids, shells, trusses) or a spring law (SPRINGA).
 
     thickness_mm: shell thickness (S3/S4).  area_mm2: truss cross-section (T3D2).
     spring_force_elongation: (K, 2) table of (force N, elongation mm), elongation ascending; used in
     an NLGEOM step it is tension-only if force is 0 for elongation <= 0 (ccx linearises it otherwise).
+    orientation: name of an `Orientation` (solid sections only), e.g. the annulus' fibre system.
     """
     elset: str
     material: str | None = None
     thickness_mm: float | None = None
     area_mm2: float | None = None
     spring_force_elongation: tuple[tuple[float, float], ...] | None = None
+    orientation: str | None = None
 
 
 @dataclass
@@ -90,7 +102,8 @@ class FEModel:
     nodes: (N, 3) coordinates in mm.  element_blocks: {name: (type, (E, k) 0-based node indices)};
     each block is written as one *ELEMENT with ELSET=name.  node_sets: {name: 0-based node indices}.
     element_sets: {name: 0-based indices into the concatenated blocks}.  materials: list of
-    LinearElastic / MooneyRivlin / UserMaterial.  sections: list of Section.
+    LinearElastic / MooneyRivlin / UserMaterial.  sections: list of Section.  orientations: list of
+    Orientation referred to by solid sections.
     """
     nodes: np.ndarray
     element_blocks: dict[str, tuple[str, np.ndarray]]
@@ -99,6 +112,7 @@ class FEModel:
     materials: list = field(default_factory=list)
     sections: list[Section] = field(default_factory=list)
     heading: str = "spinecohort model"
+    orientations: list[Orientation] = field(default_factory=list)
 
     @property
     def n_elements(self) -> int:
@@ -179,6 +193,13 @@ def validate_model(model: FEModel) -> None:
                              f"default compressibility, so the two solvers would disagree)")
         if isinstance(mat, LinearElastic) and not (mat.youngs_modulus_mpa > 0 and -1 < mat.poisson_ratio < 0.5):
             raise ValueError(f"material {mat.name!r}: needs E > 0 MPa and -1 < Poisson ratio < 0.5")
+    orientation_names = set()
+    for o in model.orientations:
+        _check_name("orientation", o.name)
+        a, b = np.asarray(o.axis_a_mm, float), np.asarray(o.axis_b_mm, float)
+        if a.shape != (3,) or b.shape != (3,) or not np.isfinite([a, b]).all() or np.linalg.norm(b - a) <= 0:
+            raise ValueError(f"orientation {o.name!r} needs two distinct finite axis points (mm)")
+        orientation_names.add(o.name.upper())
     elsets = {**{b.upper(): model.element_blocks[b][0] for b in model.element_blocks},
               **{s.upper(): None for s in model.element_sets}}
     for sec in model.sections:
@@ -197,6 +218,10 @@ def validate_model(model: FEModel) -> None:
             continue
         if sec.material is None or sec.material.upper() not in mat_names:
             raise ValueError(f"section on {sec.elset!r} refers to unknown material {sec.material!r}")
+        if sec.orientation is not None and (etype not in SOLID_TYPES
+                                            or sec.orientation.upper() not in orientation_names):
+            raise ValueError(f"section on {sec.elset!r}: orientation {sec.orientation!r} is unknown or the "
+                             f"elements are not solids")
         if etype in SHELL_TYPES and not (sec.thickness_mm and sec.thickness_mm > 0):
             raise ValueError(f"shell section on {sec.elset!r} needs thickness_mm > 0")
         if etype == "T3D2" and not (sec.area_mm2 and sec.area_mm2 > 0):
@@ -272,7 +297,13 @@ def _section_text(model: FEModel, sec: Section) -> str:
         return f"*SHELL SECTION, ELSET={sec.elset}, MATERIAL={sec.material}\n{_fmt_float(sec.thickness_mm)}\n"
     if etype == "T3D2":
         return f"*SOLID SECTION, ELSET={sec.elset}, MATERIAL={sec.material}\n{_fmt_float(sec.area_mm2)}\n"
-    return f"*SOLID SECTION, ELSET={sec.elset}, MATERIAL={sec.material}\n"
+    orient = f", ORIENTATION={sec.orientation}" if sec.orientation else ""
+    return f"*SOLID SECTION, ELSET={sec.elset}, MATERIAL={sec.material}{orient}\n"
+
+
+def _orientation_text(o: Orientation) -> str:
+    pts = ", ".join(_fmt_float(x) for x in (*o.axis_a_mm, *o.axis_b_mm))
+    return f"*ORIENTATION, NAME={o.name}, SYSTEM=CYLINDRICAL\n{pts}\n"
 
 
 def model_to_inp_text(model: FEModel, decimals: int = 6, provenance: str = "") -> str:
@@ -298,6 +329,7 @@ def model_to_inp_text(model: FEModel, decimals: int = 6, provenance: str = "") -
         parts += [f"*NSET, NSET={name}\n", format_id_list(np.asarray(idx) + 1)]
     for name, idx in model.element_sets.items():
         parts += [f"*ELSET, ELSET={name}\n", format_id_list(np.asarray(idx) + 1)]
+    parts += [_orientation_text(o) for o in model.orientations]
     parts += [_material_text(m) for m in model.materials]
     parts += [_section_text(model, s) for s in model.sections]
     return "".join(parts)

@@ -62,16 +62,83 @@ def _export(args: argparse.Namespace) -> int:
     from .models import virtual_model, write_model
     from .pca import SSM
 
-    cfg = yaml.safe_load(Path(args.config).read_text())
-    r = Path(args.results or cfg["results"])
-    grid = cfg["grid"]
-    template = HexTemplate.load(r / "template" / "template.npz")
-    vm = virtual_model(args.model_id, SSM.load(r / "ssm" / "ssm.npz"), HexSSM.load(r / "template" / "hex_ssm.npz"),
+    if args.release:  # an unpacked release: its model_inputs/ hold everything (no config, no Snakemake)
+        from .release import release_model_inputs
+
+        src = release_model_inputs(args.release)
+        grid, hex_type = src["grid"], src["hex_type"]
+        faces = lambda: np.load(src["faces"], allow_pickle=False)  # noqa: E731
+    else:
+        cfg = yaml.safe_load(Path(args.config).read_text())
+        r = Path(args.results or cfg["results"])
+        grid, hex_type = cfg["grid"], cfg["template"]["hex_type"]
+        fe_cfg = cfg.get("fe")  # materials of the deck (None: the defaults, equal to config/config.yaml)
+        src = {"ssm": r / "ssm" / "ssm.npz", "hex_ssm": r / "template" / "hex_ssm.npz",
+               "template": r / "template" / "template.npz"}
+        faces = lambda: load_cohort_npz(r / "cohort" / "cohort.npz").faces  # noqa: E731
+    template = HexTemplate.load(src["template"])
+    vm = virtual_model(args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]),
                        template, grid["n_modes"], grid["levels"])
     out = args.out or Path(f"model_{vm.model_id:05d}.{args.format}")
-    write_model(vm, args.format, out, template, load_cohort_npz(r / "cohort" / "cohort.npz").faces,
-                cfg["template"]["hex_type"])
+    from .fe_export import materials_from_config
+
+    write_model(vm, args.format, out, template, faces(), hex_type,
+                materials=materials_from_config(src["fe"] if args.release else fe_cfg))
     print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {vm.repair}")
+    return 0
+
+
+def _verify(args: argparse.Namespace) -> int:
+    from .release import verify_release
+
+    rep = verify_release(args.release, processes=args.processes, unpack=not args.no_unpack, workdir=args.tmpdir)
+    unpacked = (f"; {rep['parts']} archive parts unpack to a complete store of {rep['models']} models"
+                if "parts" in rep else "")
+    print(f"{args.release}: valid BagIt bag, {rep['files']} payload files ({rep['bytes'] / 1e6:.1f} MB), every "
+          f"sha256 matches{unpacked} ({rep['seconds']:.1f} s)")
+    return 0
+
+
+def _unpack(args: argparse.Namespace) -> int:
+    import csv
+
+    from .release import PARTS_INDEX, safe_extract
+
+    data = Path(args.release) / "data"
+    index = data / PARTS_INDEX
+    if not index.is_file():
+        raise ValueError(f"{index} does not exist; is {args.release} a spinecohort release?")
+    dest = args.to or Path.cwd()  # outside the bag by default: extra files inside it would fail `verify`
+    if (dest / "cohort.zarr").exists():
+        raise ValueError(f"{dest / 'cohort.zarr'} already exists; remove it or choose another --to")
+    for row in csv.DictReader(index.open()):
+        safe_extract(data / row["part"], dest)
+    print(f"{dest / 'cohort.zarr'}")
+    return 0
+
+
+def _check_store(args: argparse.Namespace) -> int:
+    from .store import invalidate_shard, shard_problems
+
+    problems = shard_problems(args.store)
+    if not problems:
+        print(f"{args.store}: every shard matches its recorded sha256")
+        return 0
+    for shard, why in sorted(problems.items()):
+        print(f"shard {shard:05d}: {why}")
+    if not args.rebuild:
+        print(f"{len(problems)} shard(s) to rebuild: run `spinecohort check-store {args.store} --rebuild`, then "
+              "snakemake, which rewrites exactly those shards", file=sys.stderr)
+        return 1
+    records = args.records or Path(args.store).parent / "shards"
+    for shard in sorted(problems):
+        invalidate_shard(args.store, shard)
+        for f in sorted(Path(records).glob(f"{shard:05d}.*")):  # sample record, quality, parameters
+            f.unlink()
+    # the store-wide check (results/store_check.csv) is stale too; without it Snakemake sees the missing
+    # shard records as removed intermediates and would not rerun them
+    Path(args.store).parent.joinpath("store_check.csv").unlink(missing_ok=True)
+    print(f"invalidated {len(problems)} shard(s) and their records in {records}: run snakemake to rebuild them")
     return 0
 
 
@@ -92,6 +159,66 @@ def _query(args: argparse.Namespace) -> int:
     ids = query_models(pd.read_csv(csv), ranges)
     print("\n".join(ids))
     print(f"{len(ids)} models match", file=sys.stderr)
+    return 0
+
+
+def _personalize(args: argparse.Namespace) -> int:
+    import yaml
+
+    from .cohort import load_cohort_npz
+    from .measure import UNITS
+    from .pca import SSM
+    from .personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
+
+    filters = args.filters
+    if not filters or len(filters) % 2 or not all(f.startswith("--") for f in filters[::2]):
+        raise ValueError("personalize needs target pairs '--PARAM value', e.g. --PI 55 --PT 28 --LL 30, got "
+                         f"'{' '.join(filters)}'")
+    targets = {}
+    for k, v in zip(filters[::2], filters[1::2]):
+        try:
+            targets[k[2:]] = float(v)
+        except ValueError:
+            raise ValueError(f"target {k} must be a number (deg / mm), got '{v}'") from None
+    targets = complete_pelvic_targets(targets, source="command line")
+    cfg = yaml.safe_load(Path(args.config).read_text())
+    r = Path(args.results or cfg["results"])
+    settings = Settings.from_config(cfg["personalize"], cfg["grid"]["n_modes"])
+    settings.parameters += [p for p in targets if p not in settings.parameters]  # weight 1 per deg / mm
+    m = cfg["measure"]
+    for f in (r / "ssm" / "ssm.npz", r / "cohort" / "cohort.npz"):
+        if not f.is_file():
+            raise ValueError(f"{f} does not exist; run the pipeline (snakemake) up to the SSM first")
+    model = build_model(SSM.load(r / "ssm" / "ssm.npz"), load_cohort_npz(r / "cohort" / "cohort.npz").landmarks,
+                        settings, {"vertical": m["vertical_axis"], "c7_proxy": m["c7_proxy"]})
+    res = model.fit(targets)
+    print(f"weights (SD): {np.round(res.weights, 4).tolist()}; posture {res.posture_deg:.3f} deg; "
+          f"{res.at_bound} weight(s) at +-{settings.bound_sd:g} SD")
+    print(f"{'parameter':<12}{'target':>10}{'achieved':>10}{'error':>9}  unit")
+    for p in settings.parameters:
+        t = targets.get(p, float("nan"))
+        print(f"{p:<12}{t:>10.3f}{res.achieved[p]:>10.3f}{res.achieved[p] - t:>9.3f}  {UNITS.get(p, '')}")
+    if args.out:
+        from .abaqus import write_inp, write_vtu
+        from .fe_export import fe_model, materials_from_config
+        from .hex_ssm import HexSSM
+        from .hex_template import HexTemplate
+
+        template = HexTemplate.load(r / "template" / "template.npz")
+        pts, rep = personalized_hex(template, HexSSM.load(r / "template" / "hex_ssm.npz"), res.weights,
+                                    res.posture_deg, name="personalized model")
+        heading = (f"spinecohort personalized model: targets {targets}, weights (SD) "
+                   f"{np.round(res.weights, 4).tolist()}, posture {res.posture_deg:.3f} deg")
+        fe = fe_model(template, pts, hex_type=cfg["template"]["hex_type"], heading=heading,
+                      materials=materials_from_config(cfg.get("fe")))
+        if args.out.suffix == ".vtu":
+            write_vtu(fe, args.out)
+        elif args.out.suffix == ".inp":
+            write_inp(fe, args.out, provenance=heading)
+        else:
+            raise ValueError(f"--out {args.out}: use a .inp or .vtu file name")
+        print(f"-> {args.out}; Jacobian check: "
+              f"{ {k: v for k, v in rep.items() if k != 'level_offsets_mm'} }")
     return 0
 
 
@@ -125,7 +252,37 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", type=Path)
     e.add_argument("--config", type=Path, default=Path("config/config.yaml"))
     e.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    e.add_argument("--release", type=Path, help="build from a downloaded release (the bag folder) instead of "
+                                                "the results; needs neither config nor Snakemake")
     e.set_defaults(func=_export)
+
+    v = sub.add_parser("verify", help="check a release bag: every checksum, no missing or extra file, and the "
+                                      "archives unpack to a complete store")
+    v.add_argument("release", type=Path, help="the bag folder (results/release)")
+    v.add_argument("--no-unpack", action="store_true", help="only the BagIt checks (no unpacking)")
+    v.add_argument("--tmpdir", type=Path, help="where to unpack for the check (needs the store's size free)")
+    v.add_argument("--processes", type=int, default=1, help="hashing processes (default 1)")
+    v.set_defaults(func=_verify)
+
+    u = sub.add_parser("unpack", help="unpack a release's archive parts into DIR/cohort.zarr (checked: no "
+                                      "member may leave DIR)")
+    u.add_argument("release", type=Path, help="the bag folder")
+    u.add_argument("--to", type=Path, help="destination folder (default: the current one)")
+    u.set_defaults(func=_unpack)
+
+    pz = sub.add_parser("personalize", help="a model fitted to spinopelvic parameters, e.g. personalize --PI 55 "
+                                            "--PT 28 --LL 30 [--out model.inp] (deg / mm; any measured parameter)")
+    pz.add_argument("--out", type=Path, help="write the hex FE model (.inp or .vtu), Jacobian-checked and repaired")
+    pz.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    pz.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    pz.set_defaults(func=_personalize)
+
+    cs = sub.add_parser("check-store", help="check every shard of a cohort store against its recorded sha256; "
+                                            "--rebuild invalidates bad shards so that snakemake rewrites them")
+    cs.add_argument("store", type=Path, help="the store (results/cohort.zarr)")
+    cs.add_argument("--rebuild", action="store_true", help="remove bad shards and their per-shard records")
+    cs.add_argument("--records", type=Path, help="per-shard records folder (default: <store>/../shards)")
+    cs.set_defaults(func=_check_store)
 
     q = sub.add_parser("query", help="model IDs of the virtual cohort with parameters in ranges, "
                                      "e.g. query --PI 50:60 --PT 25: (bounds inclusive, deg / mm)")
@@ -134,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     q.set_defaults(func=_query)
 
     args, extra = parser.parse_known_args(argv)
-    if extra and args.command != "query":
+    if extra and args.command not in ("query", "personalize"):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.filters = extra
     logging.basicConfig(level=logging.WARNING)

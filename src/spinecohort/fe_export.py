@@ -1,41 +1,158 @@
 """From the hex template (+ any model's node coordinates) to an Abaqus/CalculiX deck, STL and VTU.
 
-Materials are of the seed's Table 2 kind (linear elastic bone, hyperelastic disc, nonlinear ligaments);
-values are literature defaults, each with its source below.  The calibrated fibre-reinforced annulus and the
-load cases belong to the FE-validation stage; here the deck carries named materials and sections so that it
-is complete and solver-ready.
+Materials (units MPa, mm, N) come from the config's ``fe:`` block (`materials_from_config`); the defaults
+below equal config/config.yaml, each with its literature source:
+
+* vertebral bodies linear elastic, cortical shell and cancellous core as separate sets (Goel et al. 1995,
+  Shirazi-Adl et al. 1986: 12000 / 100 MPa); posterior-element shells cortical, 1 mm;
+* cartilage endplates linear elastic (Lu et al. 1996: 24 MPa, 0.4);
+* nucleus Mooney-Rivlin, nearly incompressible (Schmidt et al. 2007, Clin Biomech 22:377: C10 0.12,
+  C01 0.03 MPa); D1 > 0 because ccx replaces D1 = 0 by its own default;
+* annulus: Neo-Hooke ground substance with two collagen fibre families at +-30 deg to the transverse plane,
+  CalculiX's built-in Holzapfel-type ``ELASTIC_FIBER`` user material (constants C10, D1, then ax, ay, k1,
+  k2 per family, in a cylindrical *ORIENTATION per disc: 1 radial, 2 circumferential, 3 axial).  Fibres
+  carry load only when stretched (ccx skips a family whose isochoric I4 < 1);
+* ligaments tension-only bilinear springs (SPRINGA, *SPRING NONLINEAR): Young's moduli below/above a
+  transition strain and cross-section areas of Goel et al. 1995 (as tabulated in Kim et al. 2013, BMC
+  Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
+  switchable.  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
+  export deck uses one table per group at the group's mean rest length in the model; the ROM decks
+  (`spinecohort.rom`) use one table per ligament element.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .abaqus import FEModel, LinearElastic, MooneyRivlin, Section, write_inp, write_vtu
+from .abaqus import FEModel, LinearElastic, MooneyRivlin, Orientation, Section, UserMaterial, write_inp, write_vtu
 from .hex_template import LIGAMENT_GROUPS, HexTemplate
 
-#: (E MPa, nu) of the linear-elastic tissues.  Cortical/cancellous bone: Goel et al. 1995 and
-#: Shirazi-Adl et al. 1986 (12000 / 100 MPa); cartilage endplate: Lu et al. 1996 (24 MPa, 0.4).
-LINEAR = {"CORTICAL": (12000.0, 0.3), "CANCELLOUS": (100.0, 0.2), "CEP": (24.0, 0.4)}
-#: Mooney-Rivlin (C10, C01 MPa, D1 1/MPa): nucleus nearly incompressible, annulus ground substance
-#: (Schmidt et al. 2007, Clin Biomech 22:377).  D1 > 0 because ccx replaces D1 = 0 by its own default.
-HYPERELASTIC = {"NP": (0.12, 0.03, 0.0005), "AF": (0.18, 0.045, 0.1)}
-#: Ligament stiffness N/mm (tension only), from Shirazi-Adl et al. 1986 / Rohlmann et al. 2006 initial
-#: stiffnesses; per side where a group has a left and a right element.
-LIGAMENT_STIFFNESS = {"ALL": 33.0, "PLL": 20.4, "LF": 27.2, "CL": 33.9, "ISL": 11.5, "SSL": 23.7, "ITL": 10.0}
-SHELL_THICKNESS_MM = 1.0  # cortical shell of the surface-modelled bones
+
+@dataclass(frozen=True)
+class LigamentLaw:
+    """Bilinear tension-only ligament: E below / above the transition strain (MPa), area (mm^2)."""
+    e1_mpa: float
+    e2_mpa: float
+    transition_strain: float
+    area_mm2: float
 
 
-def ligament_table(k_n_per_mm: float, max_elongation_mm: float = 20.0) -> tuple[tuple[float, float], ...]:
-    """(force N, elongation mm) pairs, ascending in elongation: zero force in compression (tension only in
-    an NLGEOM step), linear stiffness in tension."""
-    return ((0.0, -10.0), (0.0, 0.0), (k_n_per_mm * max_elongation_mm, max_elongation_mm))
+@dataclass(frozen=True)
+class FEMaterials:
+    """Every material constant of the FE models (MPa, 1/MPa, mm^2, deg)."""
+    cortical: tuple[float, float] = (12000.0, 0.3)  # E MPa, nu
+    cancellous: tuple[float, float] = (100.0, 0.2)
+    cep: tuple[float, float] = (24.0, 0.4)
+    shell_thickness_mm: float = 1.0  # posterior elements, sacrum, pelvis (S3, cortical material)
+    nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0005)  # C10, C01 MPa, D1 1/MPa
+    annulus_c10_mpa: float = 0.225
+    annulus_d1_per_mpa: float = 0.46  # from nu = 0.45 of the ground substance at mu = 0.45 MPa
+    fibre_k1_mpa: float = 1.8
+    fibre_k2: float = 11.0
+    fibre_angle_deg: float = 30.0  # to the transverse plane, +- (two families)
+    ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
+    include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
+
+    def annulus_constants(self) -> tuple[float, ...]:
+        """ELASTIC_FIBER constants: C10, D1, then (ax, ay, k1, k2) per family in the cylindrical system
+        (a = fibre direction; ccx sets az = +sqrt(1 - ax^2 - ay^2), the axial component)."""
+        c = float(np.cos(np.radians(self.fibre_angle_deg)))  # circumferential component; az = sin
+        return (self.annulus_c10_mpa, self.annulus_d1_per_mpa,
+                0.0, float(c), self.fibre_k1_mpa, self.fibre_k2,
+                0.0, float(-c), self.fibre_k1_mpa, self.fibre_k2)
+
+
+#: Goel et al. 1995 bilinear ligaments (E1, E2 MPa, transition strain, area mm^2), via Kim et al. 2013.
+DEFAULT_LIGAMENTS = {
+    "ALL": LigamentLaw(7.8, 20.0, 0.12, 63.7),
+    "PLL": LigamentLaw(10.0, 20.0, 0.11, 20.0),
+    "LF": LigamentLaw(15.0, 19.5, 0.062, 40.0),
+    "CL": LigamentLaw(7.5, 32.9, 0.25, 30.0),
+    "ITL": LigamentLaw(10.0, 58.7, 0.18, 1.8),
+    "ISL": LigamentLaw(10.0, 11.6, 0.14, 40.0),
+    "SSL": LigamentLaw(8.0, 15.0, 0.20, 30.0),
+}
+DEFAULT_MATERIALS = FEMaterials()
+ANNULUS_MATERIAL = "ELASTIC_FIBER_AF"  # ccx selects its built-in law by this name prefix
+
+
+def materials_from_config(fe: dict | None) -> FEMaterials:
+    """FEMaterials from the config's ``fe:`` block (None -> the defaults, equal to config/config.yaml)."""
+    if fe is None:
+        return DEFAULT_MATERIALS
+    ligs = {g: LigamentLaw(float(v["E1_mpa"]), float(v["E2_mpa"]), float(v["transition_strain"]),
+                           float(v["area_mm2"])) for g, v in fe["ligaments"].items()}
+    missing = set(LIGAMENT_GROUPS) - set(ligs)
+    if missing:
+        raise ValueError(f"fe.ligaments lacks the groups {sorted(missing)}")
+    af, fib, np_ = fe["annulus"], fe["annulus"]["fibres"], fe["nucleus"]
+    return FEMaterials(
+        cortical=(float(fe["cortical"]["E_mpa"]), float(fe["cortical"]["nu"])),
+        cancellous=(float(fe["cancellous"]["E_mpa"]), float(fe["cancellous"]["nu"])),
+        cep=(float(fe["cep"]["E_mpa"]), float(fe["cep"]["nu"])),
+        shell_thickness_mm=float(fe["shell_thickness_mm"]),
+        nucleus=(float(np_["c10_mpa"]), float(np_["c01_mpa"]), float(np_["d1_per_mpa"])),
+        annulus_c10_mpa=float(af["c10_mpa"]), annulus_d1_per_mpa=float(af["d1_per_mpa"]),
+        fibre_k1_mpa=float(fib["k1_mpa"]), fibre_k2=float(fib["k2"]), fibre_angle_deg=float(fib["angle_deg"]),
+        ligaments=ligs, include_all=bool(fe["include_all"]),
+    )
+
+
+def ligament_table(law: LigamentLaw, rest_length_mm: float, max_strain: float = 2.0) -> tuple[tuple[float, float], ...]:
+    """(force N, elongation mm) pairs, ascending: zero force in compression (tension only in an NLGEOM
+    step), E1 A up to the transition strain, E2 A beyond, extended to `max_strain` (ccx holds the force
+    constant past the table's end)."""
+    if not rest_length_mm > 0:
+        raise ValueError(f"ligament rest length must be > 0 mm, got {rest_length_mm}")
+    k1 = law.e1_mpa * law.area_mm2 / rest_length_mm  # N/mm
+    k2 = law.e2_mpa * law.area_mm2 / rest_length_mm
+    d_t = law.transition_strain * rest_length_mm
+    d_max = max_strain * rest_length_mm
+    return ((0.0, -rest_length_mm), (0.0, 0.0), (k1 * d_t, d_t), (k1 * d_t + k2 * (d_max - d_t), d_max))
+
+
+def material_cards(mats: FEMaterials) -> list:
+    """The named materials every deck carries: CORTICAL, CANCELLOUS, CEP, NP, ELASTIC_FIBER_AF."""
+    return [LinearElastic("CORTICAL", *mats.cortical), LinearElastic("CANCELLOUS", *mats.cancellous),
+            LinearElastic("CEP", *mats.cep), MooneyRivlin("NP", *mats.nucleus),
+            UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
+
+
+def disc_orientations(template: HexTemplate, points: np.ndarray) -> dict[str, Orientation]:
+    """Cylindrical fibre system per disc ('D_L4L5' -> OR_D_L4L5): axis from the centre of the disc's lower
+    bounding node layer to the centre of its upper one (mm)."""
+    from .hex_template import disc_runs
+
+    n2 = len(template.grid.nodes)
+    out = {}
+    for first, end in disc_runs(template.layers):
+        name = "D_" + template.layers[first]["disc"].replace("-", "")
+        lo = points[(first - 1) * n2:first * n2].mean(0)
+        hi = points[end * n2:(end + 1) * n2].mean(0)
+        out[name] = Orientation(f"OR_{name}", tuple(map(float, lo)), tuple(map(float, hi)))
+    return out
+
+
+def hex_section(name: str, orientations: dict[str, Orientation]) -> Section:
+    """Section of a template hex set (V_<lvl>_CORE/SHELL, D_<disc>_NP/AF/CEP)."""
+    tissue = name.rsplit("_", 1)[1]
+    if tissue == "AF":
+        return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
+    return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue))
 
 
 def fe_model(template: HexTemplate, points: np.ndarray | None = None, hex_type: str = "C3D8",
-             include_all: bool = True, heading: str = "spinecohort model") -> FEModel:
-    """The template as an FEModel with the given node coordinates (default: the template's own)."""
+             include_all: bool | None = None, heading: str = "spinecohort model",
+             materials: FEMaterials | None = None) -> FEModel:
+    """The template as an FEModel with the given node coordinates (default: the template's own).
+
+    materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
+    """
+    mats = DEFAULT_MATERIALS if materials is None else materials
+    include_all = mats.include_all if include_all is None else include_all
     pts = template.nodes if points is None else np.asarray(points, dtype=np.float64)
     if pts.shape != template.nodes.shape:
         raise ValueError(f"points have shape {pts.shape}, the template has {template.nodes.shape}")
@@ -54,29 +171,29 @@ def fe_model(template: HexTemplate, points: np.ndarray | None = None, hex_type: 
             if len(idx) == 0:
                 continue
         elsets[name] = offset[kind] + np.asarray(idx)
-    materials = [LinearElastic(k, *v) for k, v in LINEAR.items()]
-    materials += [MooneyRivlin(k, *v) for k, v in HYPERELASTIC.items()]
+    orientations = disc_orientations(template, pts)
     sections = []
     for name, kind in template.elset_kind.items():
         if name not in elsets:
             continue
         if kind == "hex":
-            tissue = name.rsplit("_", 1)[1]
-            mat = {"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue)
-            sections.append(Section(elset=name, material=mat))
+            sections.append(hex_section(name, orientations))
         elif kind == "tri":
-            sections.append(Section(elset=name, material="CORTICAL", thickness_mm=SHELL_THICKNESS_MM))
+            sections.append(Section(elset=name, material="CORTICAL", thickness_mm=mats.shell_thickness_mm))
         else:
             group = name.split("_", 1)[1]
-            sections.append(Section(elset=name, spring_force_elongation=ligament_table(LIGAMENT_STIFFNESS[group])))
+            ends = pts[template.ligaments[template.elsets[name]]]
+            rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
+            sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[group], rest)))
     return FEModel(nodes=pts, element_blocks=blocks, node_sets=dict(template.nsets), element_sets=elsets,
-                   materials=materials, sections=sections, heading=heading)
+                   materials=material_cards(mats), sections=sections, heading=heading,
+                   orientations=list(orientations.values()))
 
 
 def write_model_files(template: HexTemplate, points: np.ndarray, out: str | Path, fmt: str,
-                      heading: str = "spinecohort model") -> Path:
+                      heading: str = "spinecohort model", materials: FEMaterials | None = None) -> Path:
     """Write one model as ``inp`` (Abaqus/CalculiX deck) or ``vtu``."""
-    model = fe_model(template, points, heading=heading)
+    model = fe_model(template, points, heading=heading, materials=materials)
     if fmt == "inp":
         return write_inp(model, out, provenance=heading)
     if fmt == "vtu":
@@ -84,4 +201,5 @@ def write_model_files(template: HexTemplate, points: np.ndarray, out: str | Path
     raise ValueError(f"unknown FE format '{fmt}' (inp | vtu)")
 
 
-__all__ = ["fe_model", "write_model_files", "ligament_table", "LIGAMENT_GROUPS"]
+__all__ = ["fe_model", "write_model_files", "ligament_table", "materials_from_config", "FEMaterials",
+           "LigamentLaw", "DEFAULT_MATERIALS", "LIGAMENT_GROUPS"]

@@ -13,6 +13,11 @@ Transfer methods (``method``):
 
 Surface elements (posterior elements, sacrum, pelvis, femoral heads) are SSM vertices: their fields are the
 triangulated SSM's own, exactly, in both methods.
+
+Models are ``hex_mean + DF . b`` followed, where the linear model collapses a disc (extreme weights), by
+the disc-contact distraction of :mod:`spinecohort.contact` (``HexSSM.contact``; applied by
+``shards.sample_points`` and ``models.hex_points_checked``, not by ``HexSSM.sample``, which stays the
+linear formula).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .contact import ContactMap, contact_map, disc_gaps, level_offsets
 from .hex_template import HexTemplate, disc_runs
 from .landmarks import Landmarks
 from .pca import SSM
@@ -34,6 +40,7 @@ class HexSSM:
     fields: np.ndarray  # (m, n_nodes, 3) mm per +1 SD
     eigenvalues: np.ndarray  # (m,) of the triangulated SSM, for reference
     method: str
+    contact: ContactMap | None = None  # disc-contact distraction (None: the linear formula only)
 
     def sample(self, weights: np.ndarray) -> np.ndarray:
         """Node coordinates (B, n_nodes, 3) mm for weights (B, m') in SD units, m' <= m."""
@@ -42,13 +49,14 @@ class HexSSM:
         return out if np.ndim(weights) == 2 else out[0]
 
     def save(self, path: str | Path, **extra) -> None:
+        contact = self.contact.arrays() if self.contact is not None else {}
         np.savez(path, mean=self.mean, fields=self.fields, eigenvalues=self.eigenvalues,
-                 method=np.array(self.method), **extra)
+                 method=np.array(self.method), **contact, **extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "HexSSM":
         with np.load(path) as z:
-            return cls(z["mean"], z["fields"], z["eigenvalues"], str(z["method"]))
+            return cls(z["mean"], z["fields"], z["eigenvalues"], str(z["method"]), ContactMap.from_arrays(z))
 
 
 def _affine_plus_residual(src_pts: np.ndarray, src_fields: np.ndarray, query: np.ndarray, k: int = 8) -> np.ndarray:
@@ -69,8 +77,11 @@ def _affine_plus_residual(src_pts: np.ndarray, src_fields: np.ndarray, query: np
 
 
 def transfer_fields(template: HexTemplate, hex_mean: np.ndarray, tri_ssm: SSM, landmarks: Landmarks,
-                    n_modes: int, method: str = "smooth") -> HexSSM:
-    """Build the hex SSM on the morphed template nodes ``hex_mean`` (n_nodes, 3)."""
+                    n_modes: int, method: str = "smooth", min_disc_height_mm: float | None = None) -> HexSSM:
+    """Build the hex SSM on the morphed template nodes ``hex_mean`` (n_nodes, 3).
+
+    ``min_disc_height_mm``: attach the disc-contact map that keeps every disc at least this high (mm);
+    None: the linear formula only."""
     df_tri = tri_ssm.deformation_fields(n_modes)  # (m, N, 3)
     n_hex = template.n_hex_nodes
     fields = np.zeros((n_modes, len(hex_mean), 3))
@@ -93,7 +104,9 @@ def transfer_fields(template: HexTemplate, hex_mean: np.ndarray, tri_ssm: SSM, l
         fields[:, :n_hex] = hf.reshape(n_modes, -1, 3)
     else:
         raise ValueError(f"unknown transfer method '{method}' (nearest | smooth)")
-    return HexSSM(hex_mean.copy(), fields, tri_ssm.eigenvalues[:n_modes].copy(), method)
+    contact = (None if min_disc_height_mm is None
+               else contact_map(landmarks, template, hex_mean, min_disc_height_mm))
+    return HexSSM(hex_mean.copy(), fields, tri_ssm.eigenvalues[:n_modes].copy(), method, contact)
 
 
 def _interpolate_disc_fields(hf: np.ndarray, mean_layers: np.ndarray, layers: list[dict]) -> None:
@@ -106,26 +119,55 @@ def _interpolate_disc_fields(hf: np.ndarray, mean_layers: np.ndarray, layers: li
             hf[:, k] = (1 - s)[None, :, None] * hf[:, first - 1] + s[None, :, None] * hf[:, L]
 
 
-def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, chunk: int = 500) -> dict:
+def contact_offsets(hex_ssm: HexSSM, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Disc gaps (B, 17) mm and level offsets (B, 17, 3) mm of models ``weights`` (B, m), computed on the
+    endplate nodes only (cheap: no full model is sampled).  Zero offsets without a contact map."""
+    w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
+    cmap = hex_ssm.contact
+    if cmap is None:
+        return np.full((len(w), 17), np.inf), np.zeros((len(w), 17, 3))
+    nodes = np.unique(np.concatenate(cmap.upper + cmap.lower))
+    local = np.searchsorted(nodes, np.arange(len(hex_ssm.mean)))  # valid at the nodes we keep
+    pts = hex_ssm.mean[nodes] + np.tensordot(w, hex_ssm.fields[: w.shape[1], nodes], axes=(1, 0))
+    gaps, normals = disc_gaps(pts, [local[u] for u in cmap.upper], [local[lo] for lo in cmap.lower])
+    return gaps, level_offsets(gaps, normals, cmap.min_height_mm)
+
+
+def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, chunk: int = 500,
+                       contact: bool = False) -> dict:
     """Inverted-element statistics of every model of a weight grid (numba fused sample + check).
 
     Returns the fraction of inverted elements over all models and elements, the fraction of models with at
-    least one, their count and the lowest scaled Jacobian met.
+    least one, their count and the lowest scaled Jacobian met.  ``contact=True``: of the models after the
+    disc-contact distraction (``hex_ssm.contact``), and how many models it moved.
     """
-    from .quality import morph_scaled_jacobian_nb
+    from .quality import morph_scaled_jacobian_nb, scaled_jacobian
 
-    bad = models_bad = 0
+    bad = models_bad = distracted = 0
     worst = np.inf
     m = weights.shape[1]
-    mean = np.ascontiguousarray(hex_ssm.mean[: hexes.max() + 1])
-    fields = np.ascontiguousarray(hex_ssm.fields[:m, : hexes.max() + 1])
+    n = hexes.max() + 1
+    mean = np.ascontiguousarray(hex_ssm.mean[:n])
+    fields = np.ascontiguousarray(hex_ssm.fields[:m, :n])
     for i in range(0, len(weights), chunk):
-        sj = morph_scaled_jacobian_nb(mean, fields, np.ascontiguousarray(weights[i:i + chunk], dtype=np.float64),
-                                      np.ascontiguousarray(hexes))
+        wb = np.ascontiguousarray(weights[i:i + chunk], dtype=np.float64)
+        sj = morph_scaled_jacobian_nb(mean, fields, wb, np.ascontiguousarray(hexes))
+        if contact and hex_ssm.contact is not None:
+            _, off = contact_offsets(hex_ssm, wb)
+            moved = np.flatnonzero(np.abs(off).max(axis=(1, 2)) > 0)
+            distracted += len(moved)
+            if len(moved):
+                pts = (mean + np.tensordot(wb[moved], fields, axes=(1, 0))
+                       + hex_ssm.contact.hex_offsets(off[moved])[:, :n])
+                for k, p in zip(moved, pts):
+                    sj[k] = scaled_jacobian(p, hexes)
         inv = sj <= 0
         bad += int(inv.sum())
         models_bad += int(inv.any(1).sum())
         worst = min(worst, float(sj.min()))
     total = len(weights) * len(hexes)
-    return {"inverted_element_fraction": bad / total, "models_with_inverted": models_bad,
-            "models_with_inverted_fraction": models_bad / len(weights), "min_scaled_jacobian": worst}
+    out = {"inverted_element_fraction": bad / total, "models_with_inverted": models_bad,
+           "models_with_inverted_fraction": models_bad / len(weights), "min_scaled_jacobian": worst}
+    if contact:
+        out["models_distracted"] = distracted
+    return out

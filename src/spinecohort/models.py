@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .contact import resolve_contact
 from .fe_export import fe_model
 from .hex_ssm import HexSSM
 from .hex_template import HexTemplate
@@ -43,12 +44,20 @@ class VirtualModel:
 
 
 def hex_points_checked(template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Hex model coordinates for ``weights`` with every inverted element repaired (local untangling)."""
+    """Hex model coordinates for ``weights`` with collapsed discs opened (``hex_ssm.contact``) and every
+    inverted element repaired (local untangling).  The report's ``level_offsets_mm`` (17, 3) is the
+    distraction applied (zeros if none): add ``contact.tri_offsets`` of it to the triangulated model."""
     pts = hex_ssm.sample(weights)
+    offsets = np.zeros((1, 17, 3))
+    if hex_ssm.contact is not None:
+        pts = pts[None].copy()
+        _, offsets = resolve_contact(None, pts, hex_ssm.contact)
+        pts = pts[0]
     n = template.n_hex_nodes
     sj = scaled_jacobian(pts[:n], template.hexes)
     report = {"invalid_before": int((sj <= 0).sum()), "min_sj_before": float(sj.min()),
-              "nodes_moved": 0, "max_displacement_mm": 0.0}
+              "nodes_moved": 0, "max_displacement_mm": 0.0,
+              "distraction_mm": float(np.linalg.norm(offsets[0], axis=1).max()), "level_offsets_mm": offsets[0]}
     if report["invalid_before"]:
         fixed, rep = untangle(pts[:n], template.hexes, hex_ssm.mean[:n])
         pts = pts.copy()
@@ -67,12 +76,17 @@ def virtual_model(model: str | int, ssm: SSM, hex_ssm: HexSSM, template: HexTemp
         pts, report = hex_points_checked(template, hex_ssm, w)
     except RepairError as exc:
         raise RepairError(f"model_{i:05d} (weights {w.tolist()} SD) cannot be repaired: {exc}") from exc
-    return VirtualModel(i, w, ssm.sample(w), pts, report)
+    tri = ssm.sample(w)
+    if hex_ssm.contact is not None:
+        tri = tri + hex_ssm.contact.tri_offsets(report["level_offsets_mm"][None])[0]
+    return VirtualModel(i, w, tri, pts, report)
 
 
 def write_model(vm: VirtualModel, fmt: str, out: str | Path, template: HexTemplate, faces: np.ndarray,
-                hex_type: str = "C3D8") -> Path:
-    """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model)."""
+                hex_type: str = "C3D8", materials=None) -> Path:
+    """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model).
+
+    materials: `spinecohort.fe_export.FEMaterials` (default: config/config.yaml's ``fe`` values)."""
     from .abaqus import write_inp, write_vtu
     from .stl_io import write_stl
 
@@ -82,9 +96,10 @@ def write_model(vm: VirtualModel, fmt: str, out: str | Path, template: HexTempla
     if fmt == "stl":
         write_stl(out, vm.tri_points, faces, name=name)
     elif fmt == "inp":
-        write_inp(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading), out, provenance=heading)
+        write_inp(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials), out,
+                  provenance=heading)
     elif fmt == "vtu":
-        write_vtu(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading), out)
+        write_vtu(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials), out)
     else:
         raise ValueError(f"unknown format '{fmt}' (inp | stl | vtu)")
     return out

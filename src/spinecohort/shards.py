@@ -22,6 +22,7 @@ import warnings
 import numpy as np
 import pandas as pd
 
+from .contact import distraction_summary, resolve_contact
 from .hex_ssm import HexSSM
 from .hex_template import HexTemplate
 from .landmarks import LEVELS, Landmarks
@@ -46,12 +47,14 @@ def _check_weights(weights: np.ndarray, n_available: int, what: str) -> np.ndarr
     return w
 
 
-def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray,
-                  chunk: int = DEFAULT_CHUNK) -> tuple[np.ndarray, np.ndarray]:
-    """(tri (S, N, 3), hex (S, n_nodes, 3)) float32 mm of ``SSM.sample`` / ``HexSSM.sample`` for weights (S, m).
+def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray, chunk: int = DEFAULT_CHUNK,
+                  return_contact: bool = False):
+    """(tri (S, N, 3), hex (S, n_nodes, 3)) float32 mm of ``SSM.sample`` / ``HexSSM.sample`` for weights (S, m),
+    with the disc-contact distraction of ``hex_ssm.contact`` applied (``spinecohort.contact``).
 
     Computed in float64 batches of ``chunk`` models (one BLAS product each) and cast to float32, the
-    store's dtype, so the float64 intermediate never holds the whole shard.
+    store's dtype, so the float64 intermediate never holds the whole shard.  ``return_contact``: also
+    return the disc gaps before (S, 17) mm and the level offsets applied (S, 17, 3) mm.
     """
     w = _check_weights(weights, min(ssm.n_modes, hex_ssm.fields.shape[0]), "SSM")
     if chunk < 1:
@@ -61,11 +64,17 @@ def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray,
     hexp = np.empty((len(w), *hex_ssm.mean.shape), np.float32)
     df_tri = ssm.deformation_fields(m).reshape(m, -1)
     df_hex = hex_ssm.fields[:m].reshape(m, -1)
+    gaps = np.full((len(w), 17), np.inf)
+    offsets = np.zeros((len(w), 17, 3))
     for i in range(0, len(w), chunk):
         wb = w[i:i + chunk]
-        tri[i:i + chunk] = (ssm.mean.ravel() + wb @ df_tri).reshape(len(wb), *ssm.mean.shape)
-        hexp[i:i + chunk] = (hex_ssm.mean.ravel() + wb @ df_hex).reshape(len(wb), *hex_ssm.mean.shape)
-    return tri, hexp
+        t64 = (ssm.mean.ravel() + wb @ df_tri).reshape(len(wb), *ssm.mean.shape)
+        h64 = (hex_ssm.mean.ravel() + wb @ df_hex).reshape(len(wb), *hex_ssm.mean.shape)
+        if hex_ssm.contact is not None:
+            gaps[i:i + chunk], offsets[i:i + chunk] = resolve_contact(t64, h64, hex_ssm.contact)
+        tri[i:i + chunk] = t64
+        hexp[i:i + chunk] = h64
+    return (tri, hexp, gaps, offsets) if return_contact else (tri, hexp)
 
 
 def _min_by_part(sj: np.ndarray, part: np.ndarray) -> dict[str, np.ndarray]:
@@ -74,7 +83,8 @@ def _min_by_part(sj: np.ndarray, part: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarray,
-                     model_ids: np.ndarray, repair: bool = True, log=None) -> pd.DataFrame:
+                     model_ids: np.ndarray, repair: bool = True, log=None,
+                     level_offsets: np.ndarray | None = None) -> pd.DataFrame:
     """Scaled Jacobian of every hex of every model; untangle the models with inverted hexes **in place**.
 
     hex_points (S, n_nodes, 3) float32 mm (the sampled coordinates of ``weights`` (S, m)): the check runs
@@ -83,6 +93,8 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
     ``invalid_before/after`` (hexes with sJ <= 0), ``nodes_moved``, ``max_displacement_mm``, ``repaired``,
     ``repair_error`` (empty or the RepairError message) and ``min_sj_<tissue>`` (after repair).
     repair=False only checks (the rows then have invalid_after == invalid_before).
+    ``level_offsets`` (S, 17, 3) mm: the disc-contact distraction ``sample_points`` applied; distracted
+    models are checked (and repaired) on the float64 formula plus their offsets.
     """
     w = _check_weights(weights, hex_ssm.fields.shape[0], "hex SSM")
     if hex_points.shape != (len(w), *hex_ssm.mean.shape):
@@ -92,6 +104,12 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
     mean = np.ascontiguousarray(hex_ssm.mean[:n])
     fields = np.ascontiguousarray(hex_ssm.fields[: w.shape[1], :n])
     sj = morph_scaled_jacobian_nb(mean, fields, np.ascontiguousarray(w), hexes)  # (S, E)
+    moved = (np.flatnonzero(np.abs(level_offsets).max(axis=(1, 2)) > 0) if level_offsets is not None
+             else np.array([], dtype=np.int64))
+    shift = {}
+    for k in moved:  # few models per shard: their own float64 coordinates
+        shift[k] = hex_ssm.contact.hex_offsets(level_offsets[k:k + 1])[0, :n]
+        sj[k] = scaled_jacobian(mean + np.tensordot(w[k], fields, axes=(0, 0)) + shift[k], hexes)
     invalid = (sj <= 0).sum(axis=1)
     rows = pd.DataFrame({"model_id": np.asarray(model_ids, dtype=np.int64), "min_sj_before": sj.min(axis=1),
                          "invalid_before": invalid, "nodes_moved": 0, "max_displacement_mm": 0.0,
@@ -100,7 +118,7 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
     if len(bad) and repair:
         ctx = prepare_untangle(hexes, mean)  # topology + reference quality, shared by every model
         for k in bad:  # few models per shard (~2 % on the default grid); untangle is per mesh
-            pts = mean + np.tensordot(w[k], fields, axes=(0, 0))
+            pts = mean + np.tensordot(w[k], fields, axes=(0, 0)) + shift.get(k, 0.0)
             try:
                 fixed, rep = untangle(pts, hexes, mean, context=ctx)
             except RepairError as exc:
@@ -127,9 +145,12 @@ def sample_shard(ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, weights: np.n
                  log=None) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, dict]:
     """Sample, check and repair one shard -> (tri, hex, quality table, timing dict in s)."""
     t0 = time.perf_counter()
-    tri, hexp = sample_points(ssm, hex_ssm, weights, chunk)
+    tri, hexp, gaps, offsets = sample_points(ssm, hex_ssm, weights, chunk, return_contact=True)
     t1 = time.perf_counter()
-    quality = check_and_repair(hexp, template, hex_ssm, weights, model_ids, repair, log)
+    quality = check_and_repair(hexp, template, hex_ssm, weights, model_ids, repair, log, offsets)
+    if hex_ssm.contact is not None:
+        for key, v in distraction_summary(gaps, offsets).items():
+            quality[key] = v
     t2 = time.perf_counter()
     return tri, hexp, quality, {"sample_s": t1 - t0, "check_repair_s": t2 - t1}
 

@@ -33,6 +33,8 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
+import signal
 import warnings
 from pathlib import Path
 
@@ -50,6 +52,9 @@ ENCODINGS = ("int32-delta", "int32", "float32")
 POINT_ARRAYS = ("tri/points", "hex/points")
 STORE_FORMAT = "spinecohort.cohort-store/1"
 _CHECKSUM_DIR = "checksums"
+#: fault injection for the kill-and-resume test: a process with this variable set to a shard number is
+#: SIGKILLed by ``write_shard`` after that shard's first array is written (as a node failure would)
+FAULT_KILL_ENV = "SPINECOHORT_FAULT_KILL_SHARD"
 # float32 spacing relative to magnitude; three roundings (input cast, scaled product, decoded cast)
 # each contribute at most half an ulp.
 _F32_HALF_ULP_REL = 2.0**-24
@@ -312,6 +317,8 @@ def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points
     for name, x in arrays.items():
         arr = rw[name].with_config({"order": order})
         arr[start:stop] = x
+        if os.environ.get(FAULT_KILL_ENV) == str(shard):  # fault injection: die between the two arrays
+            os.kill(os.getpid(), signal.SIGKILL)
         if verify:
             # float32 difference: half the memory traffic; its own rounding (<= 2^-24 |x|) is covered by
             # the bound's float32 terms
@@ -352,21 +359,50 @@ def read_shard(path: str | Path, shard: int, array: str = "tri/points") -> np.nd
 
 
 @_quiet_numcodecs
-def check_store(path: str | Path) -> list[int]:
-    """Shards that must be (re)written: no sidecar, a missing object, or an object whose sha256 differs."""
+def shard_problems(path: str | Path) -> dict[int, str]:
+    """Shards that must be (re)written, with why: no sidecar (never finished, or killed), a missing
+    object, or an object whose size or sha256 differs from the one recorded when it was written."""
     p = Path(path)
     _, meta = _open_meta(p)
-    bad = []
+    bad = {}
     for s in range(meta["n_shards"]):
         side = p / _sidecar(s) / "zarr.json"
         if not side.is_file():
-            bad.append(s)
+            bad[s] = "no checksum record (never written, or its job was killed before it finished)"
             continue
         rec = json.loads(side.read_text())["attributes"]
         for rel, want in rec["objects"].items():
             obj = p / rel
-            if (not obj.is_file() or obj.stat().st_size != want["bytes"]
-                    or file_sha256(obj) != want["sha256"]):
-                bad.append(s)
+            if not obj.is_file():
+                bad[s] = f"{rel} is missing"
+            elif obj.stat().st_size != want["bytes"]:
+                bad[s] = f"{rel} has {obj.stat().st_size} bytes, {want['bytes']} were written"
+            elif file_sha256(obj) != want["sha256"]:
+                bad[s] = f"{rel} is corrupt (sha256 differs from the one recorded at write time)"
+            if s in bad:
                 break
     return bad
+
+
+def check_store(path: str | Path) -> list[int]:
+    """Shards that must be (re)written (``shard_problems`` without the reasons)."""
+    return sorted(shard_problems(path))
+
+
+def invalidate_shard(path: str | Path, shard: int) -> list[Path]:
+    """Remove shard ``shard``'s checksum record and data objects, so that it reads as never written and
+    its next ``write_shard`` starts from nothing.  Returns the files removed."""
+    p = Path(path)
+    _open_meta(p)
+    removed = []
+    side = p / _sidecar(shard)
+    if side.is_dir():
+        for f in side.iterdir():
+            f.unlink()
+            removed.append(f)
+        side.rmdir()
+    for obj in _shard_objects(p, shard):
+        if obj.is_file():
+            obj.unlink()
+            removed.append(obj)
+    return removed

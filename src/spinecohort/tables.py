@@ -25,6 +25,9 @@ NOTES = [
     ("SVA_T1, SVA_C7est", "mm", "sagittal offset proxies: T1 / extrapolated C7 centre ahead of the S1 posterosuperior corner"),
     ("DH_, DHa_, DHp_<disc>", "mm", "central, anterior and posterior disc heights"),
     ("FH_radius_L/R, HA_width", "mm", "femoral head radii (sphere fits), distance between the head centres"),
+    ("pers_fit_*, pers_proj_*", "SD / deg / mm", "personalized models (personalized/personalization.csv): mode "
+     "weights b, fitted posture, achieved - target error per fitted parameter, per-vertex distance to the patient's "
+     "aligned shape; fit = weights fitted to the parameters (the <ID>.inp model), proj = projection of the shape"),
 ]
 
 
@@ -66,6 +69,8 @@ def write_descriptive_list(path: str | Path, patients: pd.DataFrame | None = Non
 #: per-model quality columns of the shard tables carried into the virtual-cohort sheet
 QUALITY_SUMMARY = ["min_sj_before", "min_sj_after", "invalid_before", "invalid_after", "nodes_moved",
                    "max_displacement_mm", "repaired"]
+#: disc-contact columns (present when the hex SSM carries a contact map; spinecohort.contact)
+CONTACT_SUMMARY = ["min_disc_gap_before_mm", "discs_opened", "distraction_mm"]
 
 
 def virtual_cohort_table(params: list[pd.DataFrame], quality: list[pd.DataFrame]) -> pd.DataFrame:
@@ -73,7 +78,8 @@ def virtual_cohort_table(params: list[pd.DataFrame], quality: list[pd.DataFrame]
     quality summary columns of their Jacobian check / repair, sorted by model ID."""
     p = pd.concat(params, ignore_index=True)
     q = pd.concat(quality, ignore_index=True)
-    q = q.assign(model_id=[f"model_{int(i):05d}" for i in q["model_id"]])[["model_id", *QUALITY_SUMMARY]]
+    cols = QUALITY_SUMMARY + [c for c in CONTACT_SUMMARY if c in q.columns]
+    q = q.assign(model_id=[f"model_{int(i):05d}" for i in q["model_id"]])[["model_id", *cols]]
     dup = p["model_id"].duplicated()
     if dup.any():
         raise ValueError(f"duplicate model IDs in the shard tables, e.g. {p.loc[dup, 'model_id'].iloc[0]}")
@@ -91,6 +97,39 @@ def tri_vs_hex_summary(diffs: list[pd.DataFrame]) -> pd.DataFrame:
     out = d.groupby("parameter", sort=False).agg(max_abs_diff=("max_abs_diff", "max"),
                                                  mean_abs_diff=("mean_abs_diff", "mean")).reset_index()
     out.insert(1, "unit", [UNITS.get(c, "") for c in out["parameter"]])
+    return out
+
+
+#: prefix of each personalization method's columns in the Patients sheet
+PERSONALIZATION_PREFIX = {"fit": "pers_fit", "projection": "pers_proj"}
+
+
+def with_personalization(patients: pd.DataFrame, personalization: pd.DataFrame) -> pd.DataFrame:
+    """Patient sheet plus, per personalization method, its weights, posture, achieved-minus-target error of
+    every fitted parameter and shape distances, with units in the headers, e.g. ``pers_fit_b1 [SD]``,
+    ``pers_fit_PI_error [deg]``, ``pers_proj_dist_mean [mm]`` (``personalize.personalize_cohort`` table)."""
+    out = patients.copy()
+    for method, prefix in PERSONALIZATION_PREFIX.items():
+        g = personalization[personalization["method"] == method].set_index("ID")
+        if g.empty:
+            continue
+        cols = {}
+        for c in g.columns:
+            if c.startswith("b") and c[1:].isdigit():
+                cols[c] = f"{prefix}_{c} [SD]"
+            elif c == "posture_deg":
+                cols[c] = f"{prefix}_posture [deg]"
+            elif c.endswith("_error") and c[:-6] in UNITS:
+                cols[c] = f"{prefix}_{c} [{UNITS[c[:-6]]}]"
+            elif c in ("dist_mean_mm", "dist_max_mm"):
+                cols[c] = f"{prefix}_{c[:-3]} [mm]"
+            elif c == "invalid_after":
+                cols[c] = f"{prefix}_inverted_hexes"
+        # columns without content for this method (a projection has no posture and no FE model) are left out
+        keep = [c for c in cols if g[c].notna().any() and not (c == "posture_deg" and (g[c] == 0).all())]
+        g = g[keep].rename(columns=cols)
+        g.index = g.index.astype(str)
+        out = out.join(g, on="ID")
     return out
 
 

@@ -19,6 +19,19 @@ SHARDS = [f"{s:05d}" for s in range(n_shards(n_models(config["grid"]["n_modes"],
                                               config["store"]["shard_models"]))]
 
 
+def figure_files():
+    """Every figure of the pipeline (rules in figures.smk, the SSM curves in ssm.smk); the release packs them."""
+    return [
+        f"{R}/ssm/compactness.png",
+        f"{R}/ssm/quality.png",
+        f"{R}/figures/mode_variation.png",
+        f"{R}/figures/mean_model_parts.png",
+        f"{R}/figures/personalized_gallery.png",
+        f"{R}/figures/parameter_histograms.png",
+        f"{R}/figures/quality_summary.png",
+    ]
+
+
 def final_outputs():
     return [
         f"{R}/cohort/cohort.npz",
@@ -31,10 +44,38 @@ def final_outputs():
         f"{R}/patients/parameters.csv",
         f"{R}/Descriptive_List.xlsx",
         f"{R}/virtual_cohort.csv",
+        f"{R}/store_check.csv",
         f"{R}/virtual_cohort_tri_vs_hex.csv",
         f"{R}/template/morph_report.csv",
         f"{R}/template/mean_quality.csv",
         f"{R}/template/hex_ssm.npz",
         f"{R}/template/transfer_report.csv",
-        f"{R}/release/Mean_Model (Template).inp",
+        f"{R}/template/Mean_Model (Template).inp",
+        *figure_files(),
+        RELEASE_BAG,  # release.smk: the verified BagIt bag (its tag manifest is written last)
     ]
+
+
+def release_inputs(wildcards):
+    """Inputs of the release (release.smk), i.e. everything the bag holds. personalized_models() and figure_files() come from personalize.smk and
+    figures.smk; input functions run when the DAG is built, after every include is parsed."""
+    personalized = globals().get("personalized_models")
+    figures = globals().get("figure_files")
+    return {
+        "store": f"{STORE}/.initialized",
+        "store_check": f"{R}/store_check.csv",  # the bag packs only a store whose every shard checks out
+        "shards": expand(f"{R}/shards/{{shard}}.sample.json", shard=SHARDS),
+        "template_inp": f"{R}/template/Mean_Model (Template).inp",
+        "workbook": f"{R}/Descriptive_List.xlsx",
+        "virtual": f"{R}/virtual_cohort.csv",
+        "patient_table": f"{R}/patients/parameters.csv",
+        "patients": COHORT["stls"],
+        "personalized": personalized() if personalized else [],
+        # the SSM figures every configuration makes, plus the figure stage's pictures
+        "figures": list(dict.fromkeys([f"{R}/ssm/compactness.png", f"{R}/ssm/quality.png",
+                                       f"{R}/figures/mode_variation.png", *(figures() if figures else [])])),
+        "ssm": f"{R}/ssm/ssm.npz",
+        "hex_ssm": f"{R}/template/hex_ssm.npz",
+        "template": f"{R}/template/template.npz",
+        "cohort": f"{R}/cohort/cohort.npz",
+    }

@@ -27,6 +27,7 @@ rule descriptive_list:
         params=expand(f"{R}/shards/{{shard}}.params.csv", shard=SHARDS),
         quality=expand(f"{R}/shards/{{shard}}.quality.csv", shard=SHARDS),
         tri_vs_hex=expand(f"{R}/shards/{{shard}}.tri_vs_hex.csv", shard=SHARDS),
+        personalization=f"{R}/personalized/personalization.csv",  # sheet 2: the personalized models
     output:
         workbook=f"{R}/Descriptive_List.xlsx",
         virtual=f"{R}/virtual_cohort.csv",

@@ -1,4 +1,4 @@
-# Stage 2: the statistical shape model: GPA, PCA with compactness, quality measures, figures.
+# Stage 2: the statistical shape model: GPA, PCA with compactness, quality measures (mode figure: figures.smk).
 
 
 rule gpa:
@@ -27,7 +27,8 @@ rule pca:
     output:
         ssm=f"{R}/ssm/ssm.npz",
         table=f"{R}/ssm/compactness.csv",
-        figure=report(f"{R}/ssm/compactness.png", category="SSM", caption="../report/compactness.rst"),
+        figure=report(f"{R}/ssm/compactness.png", category="1. Statistical shape model",
+                      caption="../report/compactness.rst"),
     params:
         variance_threshold=config["ssm"]["variance_threshold"],
     log:
@@ -47,7 +48,8 @@ rule ssm_quality:
         ssm=f"{R}/ssm/ssm.npz",
     output:
         table=f"{R}/ssm/quality.csv",
-        figure=report(f"{R}/ssm/quality.png", category="SSM", caption="../report/quality.rst"),
+        figure=report(f"{R}/ssm/quality.png", category="1. Statistical shape model",
+                      caption="../report/quality.rst"),
     params:
         quality=config["ssm"]["quality"],
     log:
@@ -60,22 +62,3 @@ rule ssm_quality:
     script:
         "../scripts/ssm_quality.py"
 
-
-rule mode_variation_figure:
-    input:
-        ssm=f"{R}/ssm/ssm.npz",
-        cohort=f"{R}/cohort/cohort.npz",
-    output:
-        report(f"{R}/figures/mode_variation.png", category="SSM", caption="../report/mode_variation.rst"),
-    params:
-        n_modes=config["figures"]["mode_variation_modes"],
-        window=config["figures"]["window"],
-    log:
-        f"{LOGS}/mode_variation_figure.log",
-    benchmark:
-        f"{BENCH}/mode_variation_figure.tsv"
-    threads: 1
-    conda:
-        "../../environment.yml"
-    script:
-        "../scripts/mode_variation_figure.py"

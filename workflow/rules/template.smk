@@ -54,6 +54,7 @@ rule hex_ssm:
         report=f"{R}/template/transfer_report.csv",
     params:
         transfer=config["hex_ssm"]["transfer"],
+        min_disc_height_mm=config["hex_ssm"].get("min_disc_height_mm"),
         grid=config["grid"],
     log:
         f"{LOGS}/hex_ssm.log",
@@ -71,9 +72,10 @@ rule template_inp:
         template=f"{R}/template/template.npz",
         nodes=f"{R}/template/mean_hex.npz",
     output:
-        f"{R}/release/Mean_Model (Template).inp",
+        f"{R}/template/Mean_Model (Template).inp",
     params:
         hex_type=config["template"]["hex_type"],
+        fe=config["fe"],
     log:
         f"{LOGS}/template_inp.log",
     benchmark:
@@ -99,6 +101,7 @@ rule model_files:
     params:
         grid=config["grid"],
         hex_type=config["template"]["hex_type"],
+        fe=config["fe"],
     log:
         f"{LOGS}/model_files/{{model_id}}.{{ext}}.log",
     benchmark:

@@ -3,10 +3,12 @@
 import pandas as pd
 
 from spinecohort.logs import to_file
-from spinecohort.tables import tri_vs_hex_summary, virtual_cohort_table, write_descriptive_list, write_table_twins
+from spinecohort.tables import (tri_vs_hex_summary, virtual_cohort_table, with_personalization,
+                                 write_descriptive_list, write_table_twins)
 
 with to_file(snakemake.log[0]) as log:
     patients = pd.read_csv(snakemake.input.patients, dtype={"ID": str})
+    patients = with_personalization(patients, pd.read_csv(snakemake.input.personalization, dtype={"ID": str}))
     virtual = virtual_cohort_table([pd.read_csv(f) for f in snakemake.input.params],
                                    [pd.read_csv(f) for f in snakemake.input.quality])
     write_descriptive_list(snakemake.output.workbook, patients=patients, virtual=virtual)

@@ -19,11 +19,16 @@ with to_file(snakemake.log[0]) as log:
     grid = snakemake.params.grid
     weights = grid_weights(grid["n_modes"], grid["levels"])
     rows, chosen = [], None
+    h_min = snakemake.params.min_disc_height_mm
     for method in ("nearest", "smooth"):
-        hssm = transfer_fields(template, mean_hex, ssm, cohort.landmarks, grid["n_modes"], method)
+        hssm = transfer_fields(template, mean_hex, ssm, cohort.landmarks, grid["n_modes"], method, h_min)
         stats = inverted_over_grid(hssm, template.hexes, weights)
-        rows.append({"method": method, "models": len(weights), **stats})
+        rows.append({"method": method, "disc_contact": "none", "models": len(weights), **stats})
         log.info("%s transfer: %s", method, stats)
+        if h_min is not None:
+            stats = inverted_over_grid(hssm, template.hexes, weights, contact=True)
+            rows.append({"method": method, "disc_contact": f"min height {h_min} mm", "models": len(weights), **stats})
+            log.info("%s transfer with disc contact (min height %s mm): %s", method, h_min, stats)
         if method == snakemake.params.transfer:
             chosen = hssm
     pd.DataFrame(rows).to_csv(snakemake.output.report, index=False)

@@ -9,4 +9,4 @@ with to_file(snakemake.log[0]):
     with np.load(snakemake.input.cohort) as z:
         faces = z["faces"]
     mode_variation_figure(SSM.load(snakemake.input.ssm), faces, snakemake.output[0],
-                          snakemake.params.n_modes, tuple(snakemake.params.window))
+                          snakemake.params.n_modes, tuple(snakemake.params.window), dpi=snakemake.params.dpi)

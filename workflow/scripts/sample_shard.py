@@ -32,9 +32,11 @@ with to_file(snakemake.log[0]) as log:
     quality.to_csv(snakemake.output.quality, index=False, float_format="%.6g")
     record.update(timing, write_s=time.perf_counter() - t1, wall_s=wall, models_per_s=len(ids) / wall,
                   models_inverted=int((quality["invalid_before"] > 0).sum()),
+                  models_distracted=int((quality.get("distraction_mm", 0) > 0).sum()),
                   models_repaired=int(quality["repaired"].sum()), models_unrepaired=len(unrepaired))
     with open(snakemake.output.record, "w") as fh:
         json.dump(record, fh, indent=1)
-    log.info("shard %d: models %d-%d, %d with inverted hexes, %d repaired, %d unrepaired; %.1f s (%.1f models/s)",
-             shard, start, stop - 1, record["models_inverted"], record["models_repaired"], len(unrepaired), wall,
+    log.info("shard %d: models %d-%d, %d discs opened, %d with inverted hexes, %d repaired, %d unrepaired; "
+             "%.1f s (%.1f models/s)", shard, start, stop - 1, record["models_distracted"], record["models_inverted"],
+             record["models_repaired"], len(unrepaired), wall,
              record["models_per_s"])

@@ -2,7 +2,7 @@
 import numpy as np
 
 from spinecohort.abaqus import write_inp
-from spinecohort.fe_export import fe_model
+from spinecohort.fe_export import fe_model, materials_from_config
 from spinecohort.hex_template import HexTemplate
 from spinecohort.logs import to_file
 
@@ -10,5 +10,6 @@ with to_file(snakemake.log[0]):
     template = HexTemplate.load(snakemake.input.template)
     with np.load(snakemake.input.nodes) as z:
         nodes = z["nodes"]
-    model = fe_model(template, nodes, hex_type=snakemake.params.hex_type, heading="spinecohort mean model (template)")
+    model = fe_model(template, nodes, hex_type=snakemake.params.hex_type, heading="spinecohort mean model (template)",
+                     materials=materials_from_config(snakemake.params.fe))
     write_inp(model, snakemake.output[0], provenance="mean of the SSM, morphed hex template")

@@ -1,0 +1,184 @@
+"""Disc contact: keep every disc of a sampled model open, so that no model of the grid is collapsed.
+
+A linear SSM extrapolated to several modes at ±3 SD at once can bring a vertebra's inferior endplate
+*through* the endplate below it (on the default cohort: L5 into the sacral plate in 2 % of the 7^5 grid,
+by up to 3 mm at the posterior rim).  Such a triangulated model interpenetrates, and no hexahedral disc
+can fill a negative gap: local untangling, which keeps the endplates where they are, cannot repair it.
+
+The correction here is the smallest rigid one that keeps the spinopelvic *angles*: for every disc whose
+gap (signed distance of the upper endplate's nodes above the plane of the lower endplate, measured on the
+hex model, since the FE model is what must stay valid) falls below
+``min_height_mm``, everything cranial to that disc is translated along the lower endplate's normal until
+the smallest gap equals ``min_height_mm`` — a distraction of the segment.  Endplate orientations, and so
+PI, PT, SS, LL, the Cobb angle and the segmental angles, are unchanged; positions cranial to the disc
+(SVA, T1 offsets) move by the distraction, at most a few millimetres; the disc heights of that disc grow
+by it.  Triangulated and hexahedral models get the same translation (hex disc nodes the interpolation
+between their two endplates with the weights that placed them in the mean), so the two stay in
+correspondence, and the distraction of every model is recorded.
+
+Disc ``j`` (``landmarks.DISCS[j]``) lies between ``LEVELS[j]`` and the level below, so level ``i`` moves by
+the sum of the distractions of discs ``i ... 16``; the sacrum, pelvis and femoral heads never move.
+Millimetres throughout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .hex_template import HexTemplate, disc_runs
+from .landmarks import DISCS, LEVELS, Landmarks
+
+
+def endplate_plane(points: np.ndarray, patch: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane of the vertices ``patch`` of every model: centre (B, 3) and unit normal (B, 3)
+    oriented towards ``towards`` (B, 3) (the other endplate's centre).  points (B, N, 3) mm."""
+    p = points[:, patch].astype(np.float64)
+    centre = p.mean(axis=1)
+    x = p - centre[:, None]
+    _, vecs = np.linalg.eigh(np.einsum("bki,bkj->bij", x, x))  # ascending: column 0 = plane normal
+    normal = vecs[:, :, 0]
+    flip = np.einsum("bc,bc->b", normal, towards - centre) < 0
+    normal[flip] *= -1.0
+    return centre, normal
+
+
+def disc_gaps(points: np.ndarray, upper: list[np.ndarray], lower: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest gap (B, D) mm of every disc: vertices ``upper[j]`` (the upper vertebra's inferior endplate)
+    over the plane of ``lower[j]`` (the lower endplate), negative = interpenetration; and the lower
+    endplates' normals (B, D, 3).  points (B, N, 3) mm."""
+    pts = np.asarray(points)
+    gaps = np.empty((len(pts), len(upper)))
+    normals = np.empty((len(pts), len(upper), 3))
+    for j, (up, lo) in enumerate(zip(upper, lower)):
+        centre, n = endplate_plane(pts, lo, pts[:, up].mean(axis=1))
+        gaps[:, j] = np.einsum("bkc,bc->bk", pts[:, up] - centre[:, None], n).min(axis=1)
+        normals[:, j] = n
+    return gaps, normals
+
+
+def level_offsets(gaps: np.ndarray, normals: np.ndarray, min_height_mm: float) -> np.ndarray:
+    """Translation (B, 17, 3) mm of every level (T1..L5) that opens every disc to at least ``min_height_mm``."""
+    distraction = np.maximum(min_height_mm - gaps, 0.0)[..., None] * normals  # (B, 17, 3) per disc
+    # level i sits above discs i..16: suffix sum over the discs
+    return np.cumsum(distraction[:, ::-1], axis=1)[:, ::-1]
+
+
+@dataclass(frozen=True)
+class ContactMap:
+    """Where the gaps are measured and how the 17 level translations reach every node.
+
+    Gaps are measured on the **hex** model (node sets ``EP_INF_<upper>`` over ``EP_SUP_<lower>``: the FE
+    model is what must stay valid); the offsets move hex nodes and triangulated vertices alike.
+    tri_level (N,) int: level index of every triangulated vertex (-1: sacrum, pelvis, femoral heads);
+    hex (n_nodes, 17): a one for a vertebra's nodes, ``1 - s`` / ``s`` for hex disc nodes between two
+    levels (``s`` from the mean), zeros for the sacrum side."""
+
+    tri_level: np.ndarray
+    hex: np.ndarray
+    upper: list[np.ndarray]
+    lower: list[np.ndarray]
+    min_height_mm: float
+
+    def gaps(self, hex_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """disc_gaps of hex models (B, n_nodes, 3) mm -> gaps (B, 17) mm, normals (B, 17, 3)."""
+        return disc_gaps(hex_points, self.upper, self.lower)
+
+    def level_offsets(self, hex_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(gaps before (B, 17) mm, level offsets (B, 17, 3) mm) of hex models (B, n_nodes, 3)."""
+        gaps, normals = self.gaps(hex_points)
+        return gaps, level_offsets(gaps, normals, self.min_height_mm)
+
+    def hex_offsets(self, level_offsets_mm: np.ndarray) -> np.ndarray:
+        """Hex node offsets (B, n_nodes, 3) mm."""
+        return np.einsum("nl,blc->bnc", self.hex, level_offsets_mm)
+
+    def tri_offsets(self, level_offsets_mm: np.ndarray) -> np.ndarray:
+        """Triangulated vertex offsets (B, N, 3) mm."""
+        padded = np.concatenate([level_offsets_mm, np.zeros((len(level_offsets_mm), 1, 3))], axis=1)
+        return padded[:, self.tri_level]  # index -1 -> the zero row
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Flat arrays for an .npz (``from_arrays`` reads them back)."""
+        out = {"contact_tri_level": self.tri_level.astype(np.int8), "contact_hex": self.hex.astype(np.float32),
+               "contact_min_height_mm": np.array(self.min_height_mm)}
+        for j in range(len(self.upper)):
+            out[f"contact_upper_{j:02d}"] = self.upper[j]
+            out[f"contact_lower_{j:02d}"] = self.lower[j]
+        return out
+
+    @classmethod
+    def from_arrays(cls, z) -> "ContactMap | None":
+        if "contact_hex" not in z:
+            return None
+        nd = len(DISCS)
+        return cls(np.asarray(z["contact_tri_level"], dtype=np.int64), np.asarray(z["contact_hex"], dtype=np.float64),
+                   [np.asarray(z[f"contact_upper_{j:02d}"]) for j in range(nd)],
+                   [np.asarray(z[f"contact_lower_{j:02d}"]) for j in range(nd)],
+                   float(z["contact_min_height_mm"]))
+
+
+def _level_of_part(landmarks: Landmarks) -> np.ndarray:
+    """(N,) level index of every triangulated vertex (body_X / posterior_X), -1 for the rest."""
+    index = {lv: i for i, lv in enumerate(LEVELS)}
+    lut = np.array([index.get(name.split("_", 1)[1], -1) if name.startswith(("body_", "posterior_")) else -1
+                    for name in landmarks.part_names])
+    return lut[landmarks.part]
+
+
+def contact_map(landmarks: Landmarks, template: HexTemplate, hex_mean: np.ndarray, min_height_mm: float) -> ContactMap:
+    """The ContactMap of a triangulated topology and a morphed hex template (``hex_mean`` (n_nodes, 3) mm)."""
+    if not min_height_mm >= 0:
+        raise ValueError(f"min_height_mm must be >= 0, got {min_height_mm}")
+    nl = len(LEVELS)
+    tri_level = _level_of_part(landmarks)
+    n_hex = template.n_hex_nodes
+    layers = template.layers
+    n2 = n_hex // len(layers)
+    layer_w = np.zeros((len(layers), n2, nl))
+    for L, layer in enumerate(layers):
+        if layer["kind"] == "body":
+            layer_w[L, :, LEVELS.index(layer["level"])] = 1.0
+    mean_layers = np.asarray(hex_mean[:n_hex], dtype=np.float64).reshape(len(layers), n2, 3)
+    for first, end in disc_runs(layers):  # as hex_ssm._interpolate_disc_fields: s from the mean
+        lower, upper = mean_layers[first - 1], mean_layers[end]
+        d = upper - lower
+        for k in range(first, end):
+            s = np.einsum("nc,nc->n", mean_layers[k] - lower, d) / np.einsum("nc,nc->n", d, d)
+            layer_w[k] = (1 - s)[:, None] * layer_w[first - 1] + s[:, None] * layer_w[end]
+    hexw = np.zeros((len(hex_mean), nl))
+    hexw[:n_hex] = layer_w.reshape(n_hex, nl)
+    sv_level = tri_level[template.surface_vertex]
+    on = sv_level >= 0
+    hexw[n_hex + np.flatnonzero(on), sv_level[on]] = 1.0
+    ns = template.nsets
+    upper = [np.asarray(ns[f"EP_INF_{u}"]) for u, _ in DISCS]
+    lower = [np.asarray(ns[f"EP_SUP_{lo}"]) for _, lo in DISCS]
+    return ContactMap(tri_level, hexw, upper, lower, float(min_height_mm))
+
+
+def resolve_contact(tri: np.ndarray | None, hexp: np.ndarray, cmap: ContactMap) -> tuple[np.ndarray, np.ndarray]:
+    """Open the collapsed discs of a batch **in place**: tri (B, N, 3) (or None), hex (B, n, 3) mm.
+
+    Returns the gaps before (B, 17) mm and the level offsets applied (B, 17, 3) mm (zero where no disc
+    was below ``cmap.min_height_mm``).  Only the models that need it are touched."""
+    gaps, off = cmap.level_offsets(hexp)
+    moved = np.flatnonzero(np.abs(off).max(axis=(1, 2)) > 0)
+    if len(moved):
+        hexp[moved] += cmap.hex_offsets(off[moved]).astype(hexp.dtype)
+        if tri is not None:
+            tri[moved] += cmap.tri_offsets(off[moved]).astype(tri.dtype)
+    return gaps, off
+
+
+def distraction_summary(gaps: np.ndarray, off: np.ndarray) -> dict[str, np.ndarray]:
+    """Per model: smallest disc gap before (mm), the discs opened ("L5-S1;L4-L5" or ""), and the
+    largest level offset (mm, the total distraction of T1)."""
+    # disc j was opened iff level j moved more than level j + 1
+    step = off - np.concatenate([off[:, 1:], np.zeros((len(off), 1, 3))], axis=1)
+    opened = np.linalg.norm(step, axis=2) > 0
+    names = np.array([f"{u}-{lo}" for u, lo in DISCS])
+    return {"min_disc_gap_before_mm": gaps.min(axis=1),
+            "discs_opened": np.array([";".join(names[row]) for row in opened], dtype=object),
+            "distraction_mm": np.linalg.norm(off, axis=2).max(axis=1)}

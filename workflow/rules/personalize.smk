@@ -1,0 +1,41 @@
+# Stage 6: patient-personalized models: mode weights (and posture) fitted to each patient's spinopelvic
+# parameters, the image-based alternative (projection of the aligned shape), the fit models' .inp decks.
+from pathlib import Path
+
+# patient IDs = the cohort's STL stems (synthetic: P01..Pnn), as the cohort stage names them
+PATIENTS = [Path(p).stem for p in COHORT["stls"]]
+
+
+def personalized_models():
+    """The personalized .inp deck of every patient (consumed by the figures and the release)."""
+    return [f"{R}/personalized/{pid}.inp" for pid in PATIENTS]
+
+
+rule personalize:
+    input:
+        cohort=f"{R}/cohort/cohort.npz",
+        aligned=f"{R}/ssm/aligned.npz",
+        ssm=f"{R}/ssm/ssm.npz",
+        parameters=f"{R}/patients/parameters.csv",
+        template=f"{R}/template/template.npz",
+        hex_ssm=f"{R}/template/hex_ssm.npz",
+    output:
+        table=f"{R}/personalized/personalization.csv",
+        report=f"{R}/personalized/report.md",
+        info=f"{R}/personalized/info.json",
+        models=personalized_models(),
+    params:
+        settings=config["personalize"],
+        grid_modes=config["grid"]["n_modes"],
+        measure=config["measure"],
+        hex_type=config["template"]["hex_type"],
+        fe=config["fe"],
+    log:
+        f"{LOGS}/personalize.log",
+    benchmark:
+        f"{BENCH}/personalize.tsv"
+    threads: 1
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/personalize.py"

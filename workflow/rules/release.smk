@@ -1,0 +1,29 @@
+# Stage 7: the release, a verified BagIt bag of everything a data user downloads (docs/release.md).
+from spinecohort.release import release_dir
+
+# schema-checked as a plain name; release_dir checks again, so no config value can put the bag outside R
+RELEASE_DIR = str(release_dir(R, config["release"]["dir"]))
+# the bag's last-written tag file is the rule's output: a bag without it is incomplete, and Snakemake
+# adds no bookkeeping file inside the bag (as it would for a directory() output)
+RELEASE_BAG = f"{RELEASE_DIR}/tagmanifest-sha256.txt"
+# its inputs: release_inputs() in common.smk
+
+
+rule release:
+    input:
+        unpack(release_inputs),
+    output:
+        RELEASE_BAG,
+    params:
+        release=config["release"],
+        hex_type=config["template"]["hex_type"],
+        fe=config.get("fe"),  # materials of the decks: `export --release` writes the same decks
+    log:
+        f"{LOGS}/release.log",
+    benchmark:
+        f"{BENCH}/release.tsv"
+    threads: 2
+    conda:
+        "../../environment.yml"
+    script:
+        "../scripts/release.py"

@@ -1,0 +1,18 @@
+# Adapter: the first personalized hex models side by side (the seed's Figure 9).
+import pandas as pd
+
+from spinecohort.figures import personalized_gallery_figure
+from spinecohort.hex_ssm import HexSSM
+from spinecohort.hex_template import HexTemplate
+from spinecohort.logs import to_file
+
+with to_file(snakemake.log[0]) as log:
+    table = pd.read_csv(snakemake.input.table)
+    try:
+        ids = personalized_gallery_figure(HexSSM.load(snakemake.input.hex_ssm),
+                                          HexTemplate.load(snakemake.input.template), table, snakemake.output[0],
+                                          tuple(snakemake.params.size), dpi=snakemake.params.dpi,
+                                          n_models=snakemake.params.n_models)
+    except ValueError as exc:
+        raise ValueError(f"{snakemake.input.table}: {exc}") from exc
+    log.info("gallery of %s", ", ".join(ids))
