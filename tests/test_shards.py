@@ -158,3 +158,22 @@ def test_virtual_table_joins_quality_and_cli_query_prints_ids(tmp_path, capsys):
     assert main(["query", "--PI", "53:", "--w1", ":0.5", "--results", str(tmp_path)]) == 0
     assert capsys.readouterr().out.split() == ["model_00001"]
     assert main(["query", "--PI", "oops", "--results", str(tmp_path)]) == 2
+
+
+def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, template, ssm, hex_ssm):
+    """The quality table's Table 3 columns of a model equal ``table3_summary`` of that model alone (the
+    pooled-metrics implementation used for the template's own Table 3)."""
+    from spinecohort.quality import hex_quality_metrics, table3_summary
+
+    path, ids, w, quality = shard1
+    tissue = template.part_of_hex()
+    _, hexp = sample_points(ssm, hex_ssm, w)  # the coordinates the rows were computed on (none repaired)
+    assert not quality["repaired"].any()
+    for k in (0, 4):
+        pts = hexp[k].astype(np.float64)
+        ref = table3_summary(hex_quality_metrics(pts, template.hexes, certify=False), tissue).set_index("part")
+        for part in ("vertebra", "AF", "NP", "CEP"):
+            for col in ("pct_errors", "pct_warnings", "pct_edge_ratio_gt_10", "pct_max_face_angle_gt_160"):
+                assert quality.loc[k, f"{col}_{part}"] == pytest.approx(ref.loc[part, col], abs=1e-9), (col, part)
+            for col in ("nodal_jacobian_ratio_min", "gauss_jacobian_ratio_min"):
+                assert quality.loc[k, f"{col}_{part}"] == pytest.approx(ref.loc[part, col], rel=1e-9), (col, part)

@@ -360,8 +360,10 @@ def _disc_detail_camera(template, points: np.ndarray, disc: str) -> tuple[np.nda
     # disc names are <upper><lower> of two level names (e.g. T12L1, L4L5): split before the second letter
     split = next(i for i in range(1, len(disc)) if disc[i].isalpha())
     upper, lower = disc[:split], disc[split:]
-    body = {lv: points[np.unique(template.hexes[template.elsets[f"V_{lv}_CORE"]])].mean(axis=0) for lv in (upper, lower)}
-    disc_nodes = np.unique(template.hexes[np.concatenate([template.elsets[f"D_{disc}_{t}"] for t in ("NP", "AF", "CEP")])])
+    body = {lv: points[np.unique(template.hexes[template.elsets[f"V_{lv}_CORE"]])].mean(axis=0)
+            for lv in (upper, lower)}
+    disc_hexes = np.concatenate([template.elsets[f"D_{disc}_{t}"] for t in ("NP", "AF", "CEP")])
+    disc_nodes = np.unique(template.hexes[disc_hexes])
     focal = points[disc_nodes].mean(axis=0)
     scale = 0.62 * float(np.linalg.norm(body[upper] - body[lower]))
     return focal, scale, f"{upper}-{lower}"
@@ -463,7 +465,8 @@ def personalized_gallery_figure(hex_ssm, template, table: pd.DataFrame, path: st
     if not wcols:
         raise ValueError("the personalization table has no mode-weight columns b1..bk")
     if len(wcols) > hex_ssm.fields.shape[0]:
-        raise ValueError(f"the personalization table has {len(wcols)} weights, the hex SSM {hex_ssm.fields.shape[0]} modes")
+        raise ValueError(f"the personalization table has {len(wcols)} weights, the hex SSM "
+                         f"{hex_ssm.fields.shape[0]} modes")
     weights = rows[wcols].to_numpy(float)
     if not np.all(np.isfinite(weights)):
         raise ValueError("the personalization table has missing or non-finite weights")
@@ -508,9 +511,10 @@ PARAMETER_LABELS: dict[str, str] = {
     "LL_L4S1": "lower lumbar lordosis L4-S1", "LL_L1L5": "lordosis L1-L5", "PI_minus_LL": "PI - LL mismatch",
     "TPA": "T1 pelvic angle TPA", "T1SPI": "T1 spinopelvic inclination", "GT": "global tilt GT",
     "TK_T1T12": "kyphosis T1-T12", "TK_T4T12": "thoracic kyphosis T4-T12", "TK_T5T12": "kyphosis T5-T12",
-    "Cobb": "main coronal Cobb angle", "SVA_T1": "T1 sagittal offset (SVA proxy)", "SVA_C7est": "SVA, C7 estimated",
-    "RPV": "relative pelvic version RPV", "RLL": "relative lumbar lordosis RLL", "RSA": "relative spinopelvic alignment RSA",
-    "LDI": "lordosis distribution index LDI", "GAP_assumed_age": "GAP score (assumed age)", "GAP_noage": "GAP score without age",
+    "Cobb": "main coronal Cobb angle", "SVA_T1": "T1 sagittal offset (SVA proxy)",
+    "SVA_C7est": "SVA, C7 estimated", "RPV": "relative pelvic version RPV", "RLL": "relative lumbar lordosis RLL",
+    "RSA": "relative spinopelvic alignment RSA", "LDI": "lordosis distribution index LDI",
+    "GAP_assumed_age": "GAP score (assumed age)", "GAP_noage": "GAP score without age",
 }
 
 

@@ -628,3 +628,35 @@ def full_metrics_batch_nb(Xb, conn):
     for b in range(Xb.shape[0]):
         out[b] = full_metrics_nb(Xb[b], conn)
     return out
+
+
+def table3_per_model(points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray,
+                     chunk: int = 49) -> pd.DataFrame:
+    """The seed's Table 3 columns per model and part: one row per model of ``points`` (B, n_nodes, 3) mm.
+
+    Columns ``<metric>_<part>`` for every part label (e.g. vertebra, AF, NP, CEP): ``pct_errors`` (scaled
+    Jacobian <= 0), ``pct_warnings`` (as ``table3_summary``), ``nodal_jacobian_ratio_min``,
+    ``gauss_jacobian_ratio_min``, ``pct_edge_ratio_gt_10``, ``pct_max_face_angle_gt_160``.  Numba kernel
+    over chunks of models (float64), so memory stays at chunk x elements x 7 values.
+    """
+    part = np.asarray(part_of_element)
+    conn = np.ascontiguousarray(hexes, dtype=np.int64)
+    n = int(conn.max()) + 1
+    labels = list(dict.fromkeys(part.tolist()))
+    cols: dict[str, list[np.ndarray]] = {}
+    for i in range(0, len(points), chunk):
+        m = full_metrics_batch_nb(np.ascontiguousarray(points[i:i + chunk, :n], dtype=np.float64), conn)
+        sj, njr, gjr, er, amin, amax = m[..., 0], m[..., 2], m[..., 3], m[..., 4], m[..., 5], m[..., 6]
+        error = sj <= 0
+        warning = ~error & ((sj < WARNING_MIN_SCALED_JACOBIAN) | (amin < WARNING_FACE_ANGLE_DEG[0])
+                            | (amax > WARNING_FACE_ANGLE_DEG[1]))
+        for label in labels:
+            sel = part == label
+            for name, v in (("pct_errors", 100.0 * error[:, sel].mean(1)),
+                            ("pct_warnings", 100.0 * warning[:, sel].mean(1)),
+                            ("nodal_jacobian_ratio_min", njr[:, sel].min(1)),
+                            ("gauss_jacobian_ratio_min", gjr[:, sel].min(1)),
+                            ("pct_edge_ratio_gt_10", 100.0 * (er[:, sel] > 10).mean(1)),
+                            ("pct_max_face_angle_gt_160", 100.0 * (amax[:, sel] > 160).mean(1))):
+                cols.setdefault(f"{name}_{label}", []).append(v)
+    return pd.DataFrame({k: np.concatenate(v) for k, v in cols.items()})

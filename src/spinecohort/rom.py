@@ -28,6 +28,8 @@ anterior, cranial from the endplate planes; frame RAS: x right, y anterior, z up
 from __future__ import annotations
 
 import logging
+import re
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +43,9 @@ from .hex_template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 from .landmarks import LEVELS
 
 log = logging.getLogger(__name__)
+
+#: ccx's words for a load step it could not finish (the increment cut below its minimum, too many cutbacks)
+NONCONVERGENCE = re.compile(r"increment size smaller than minimum|too many cutbacks|divergence", re.IGNORECASE)
 
 #: load case -> (anatomical axis 0 lateral(+right) / 1 anterior / 2 cranial, sign of the moment vector).
 #: RAS frame: flexion tilts the top anteriorly = negative rotation about +x; right lateral bending tilts
@@ -376,33 +381,60 @@ class CaseResult:
     curve: np.ndarray  # (T, 2): load fraction, top rotation about the load axis in degrees
     seconds: float
     peak_rss_mb: float
+    load_fraction: float = 1.0  # of the moment reached (< 1: ccx did not converge; ROM at that load)
+    attempts: int = 1
 
 
 def run_case(model: RomModel, case: str, workdir: str | Path, moment_nmm: float = 7500.0, threads: int = 1,
              timeout_s: float = 3600.0, job: str | None = None, **deck_kw) -> CaseResult:
     """Write the deck of one load case into workdir, run ccx on it (strict log check), read the ROM."""
-    from .calculix import run_ccx
+    from .calculix import CalculixError, CcxResult, parse_dat, run_ccx
 
     check_elements(model)  # an inverted hex never reaches the solver
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     job = job or f"rom_{case}"
     deck = workdir / f"{job}.inp"
-    deck.write_text(rom_deck_text(model, case, moment_nmm, **deck_kw))
-    res = run_ccx(deck, workdir, threads=threads, timeout_s=timeout_s, allowed_warnings=ALLOWED_WARNINGS)
+    # Non-convergence (tension-only springs and fibres switching on, a soft unit at large rotation) is a
+    # property of the load case, not a broken run: retry once with smaller increments, then keep the ROM
+    # at the last converged load fraction, flagged, instead of losing the model's other load cases.
+    retry_kw = {**deck_kw, "initial_increment": min(0.02, deck_kw.get("initial_increment", 0.1)),
+                "max_increment": min(0.05, deck_kw.get("max_increment", 0.25)),
+                "min_increment": min(1e-6, deck_kw.get("min_increment", 1e-4)),
+                "max_increments": max(400, deck_kw.get("max_increments", 100))}
+    seconds = peak = 0.0
+    for attempt, kw in enumerate((deck_kw, retry_kw), start=1):
+        deck.write_text(rom_deck_text(model, case, moment_nmm, **kw))
+        t0 = time.perf_counter()
+        try:
+            res = run_ccx(deck, workdir, threads=threads, timeout_s=timeout_s, allowed_warnings=ALLOWED_WARNINGS)
+        except CalculixError as exc:
+            if not NONCONVERGENCE.search(str(exc)):
+                raise
+            log.warning("%s: ccx did not converge (attempt %d): %s", deck, attempt, str(exc).splitlines()[-1])
+            dat = workdir / f"{job}.dat"
+            res = CcxResult(1, "", parse_dat(dat.read_text()) if dat.exists() else [], workdir, job,
+                            time.perf_counter() - t0, float("nan"))
+            converged = False
+        else:
+            converged = True
+        seconds += res.seconds
+        peak = np.nanmax([peak, res.peak_rss_mb])
+        if converged:
+            break
     rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP"]
     ep_prints = [b for b in res.node_prints if b.node_set.upper() == "EPNODES"]
     if not rot_prints or not ep_prints:
         raise RomError(f"ccx run {deck} printed no displacements (log {workdir / (job + '.log')})")
     last = ep_prints[-1]
-    if abs(last.time - 1.0) > 1e-6:
+    if converged and abs(last.time - 1.0) > 1e-6:
         raise RomError(f"ccx run {deck} stopped at load fraction {last.time:g}, not 1 (no convergence?)")
     disp = {int(i) - 1: v for i, v in zip(last.node_ids, last.values)}
     axis, sign = LOAD_CASES[case]
     load_axis = model.frames[model.top][:, axis]
     curve = np.array([[b.time, sign * np.degrees(b.values[0] @ load_axis)] for b in rot_prints])
     return CaseResult(case, segment_rotations_deg(model, disp), np.degrees(rot_prints[-1].values[0]), curve,
-                      res.seconds, res.peak_rss_mb)
+                      seconds, peak, float(last.time), attempt)
 
 
 def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: str) -> pd.DataFrame:
@@ -415,7 +447,8 @@ def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: s
         for (up, lo), comp in r.rotations_deg.items():
             rows.append({"model": model_id, "mode": mode, "segment": f"{up}-{lo}", "load_case": r.case,
                          "rom_deg": sign * comp[axis], "lateral_deg": comp[0], "anterior_deg": comp[1],
-                         "cranial_deg": comp[2], "solve_s": round(r.seconds, 2), "peak_rss_mb": round(r.peak_rss_mb, 1)})
+                         "cranial_deg": comp[2], "load_fraction": r.load_fraction, "attempts": r.attempts,
+                         "solve_s": round(r.seconds, 2), "peak_rss_mb": round(r.peak_rss_mb, 1)})
     return pd.DataFrame(rows)
 
 
@@ -487,6 +520,8 @@ def model_value_deg(table: pd.DataFrame, segment: str, motion: str, side: str, m
     """Our ROM (deg) in a reference's convention: one load case, or a plane's full range (sum of both
     sides) / one-side mean.  NaN if the table lacks a needed load case."""
     rows = table[(table["segment"] == segment) & (table["mode"] == mode) & (table["variant"] == "intact")]
+    if "load_fraction" in rows:  # a case stopped short of the full moment is not comparable
+        rows = rows[rows["load_fraction"] >= 1.0 - 1e-6]
     by_case = dict(zip(rows["load_case"], rows["rom_deg"]))
     cases = PLANES.get(motion, (motion,))
     if any(c not in by_case for c in cases):

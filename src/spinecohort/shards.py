@@ -28,7 +28,7 @@ from .hex_template import HexTemplate
 from .landmarks import LEVELS, Landmarks
 from .measure import measure
 from .pca import SSM
-from .quality import morph_scaled_jacobian_nb, scaled_jacobian
+from .quality import morph_scaled_jacobian_nb, scaled_jacobian, table3_per_model
 from .repair import RepairError, prepare_untangle, untangle
 from .store import model_name
 
@@ -151,6 +151,8 @@ def sample_shard(ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, weights: np.n
     if hex_ssm.contact is not None:
         for key, v in distraction_summary(gaps, offsets).items():
             quality[key] = v
+    # the seed's Table 3 columns per model and part, on the coordinates as stored (after repair)
+    quality = pd.concat([quality, table3_per_model(hexp, template.hexes, template.part_of_hex())], axis=1)
     t2 = time.perf_counter()
     return tri, hexp, quality, {"sample_s": t1 - t0, "check_repair_s": t2 - t1}
 

@@ -19,6 +19,12 @@ SHARDS = [f"{s:05d}" for s in range(n_shards(n_models(config["grid"]["n_modes"],
                                               config["store"]["shard_models"]))]
 
 
+def personalized_models():
+    """The personalized .inp deck of every patient (personalize.smk; the figures and the release use it).
+    Patient IDs = the cohort's STL stems (synthetic: P01..Pnn), as the cohort stage names them."""
+    return [f"{R}/personalized/{Path(p).stem}.inp" for p in COHORT["stls"]]
+
+
 def figure_files():
     """Every figure of the pipeline (rules in figures.smk, the SSM curves in ssm.smk); the release packs them."""
     return [
@@ -57,10 +63,7 @@ def final_outputs():
 
 
 def release_inputs(wildcards):
-    """Inputs of the release (release.smk), i.e. everything the bag holds. personalized_models() and figure_files() come from personalize.smk and
-    figures.smk; input functions run when the DAG is built, after every include is parsed."""
-    personalized = globals().get("personalized_models")
-    figures = globals().get("figure_files")
+    """Inputs of the release (release.smk), i.e. everything the bag holds."""
     return {
         "store": f"{STORE}/.initialized",
         "store_check": f"{R}/store_check.csv",  # the bag packs only a store whose every shard checks out
@@ -70,10 +73,10 @@ def release_inputs(wildcards):
         "virtual": f"{R}/virtual_cohort.csv",
         "patient_table": f"{R}/patients/parameters.csv",
         "patients": COHORT["stls"],
-        "personalized": personalized() if personalized else [],
+        "personalized": personalized_models(),
         # the SSM figures every configuration makes, plus the figure stage's pictures
         "figures": list(dict.fromkeys([f"{R}/ssm/compactness.png", f"{R}/ssm/quality.png",
-                                       f"{R}/figures/mode_variation.png", *(figures() if figures else [])])),
+                                       f"{R}/figures/mode_variation.png", *figure_files()])),
         "ssm": f"{R}/ssm/ssm.npz",
         "hex_ssm": f"{R}/template/hex_ssm.npz",
         "template": f"{R}/template/template.npz",

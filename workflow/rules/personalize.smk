@@ -1,14 +1,6 @@
 # Stage 6: patient-personalized models: mode weights (and posture) fitted to each patient's spinopelvic
 # parameters, the image-based alternative (projection of the aligned shape), the fit models' .inp decks.
-from pathlib import Path
-
-# patient IDs = the cohort's STL stems (synthetic: P01..Pnn), as the cohort stage names them
-PATIENTS = [Path(p).stem for p in COHORT["stls"]]
-
-
-def personalized_models():
-    """The personalized .inp deck of every patient (consumed by the figures and the release)."""
-    return [f"{R}/personalized/{pid}.inp" for pid in PATIENTS]
+# personalized_models() (the 42 decks) lives in common.smk: the figures and the release use it too.
 
 
 rule personalize:
