@@ -47,6 +47,8 @@ def test_dag_produces_every_stage_output(test_run):
     assert len(virtual) == 27 and virtual["model_id"].iloc[13] == "model_00013"
     assert {"w1", "w3", "PI [deg]", "GAP_assumed_age [points]", "min_sj_after", "invalid_after"} <= set(virtual.columns)
     assert (virtual.loc[13, ["w1", "w2", "w3"]] == 0).all()
+    twin = pd.read_parquet(r / "virtual_cohort.parquet")
+    assert twin["model_id"].tolist() == virtual["model_id"].tolist() and twin["invalid_after"].dtype.kind == "i"
     # a model keeps inverted hexes only where its repair failed (and the shard's quality table says so)
     assert ((virtual["invalid_after"] > 0) <= (virtual["invalid_before"] > 0)).all()
     assert (virtual.loc[virtual["repaired"], "min_sj_after"] > 0).all()

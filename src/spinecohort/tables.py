@@ -134,19 +134,16 @@ def with_personalization(patients: pd.DataFrame, personalization: pd.DataFrame) 
 
 
 def write_table_twins(df: pd.DataFrame, csv_path: str | Path) -> list[Path]:
-    """Write ``df`` as CSV and, if pyarrow is installed, as a Parquet twin next to it (same stem)."""
+    """Write ``df`` as CSV and as a Parquet twin next to it (same stem; pyarrow, typed columns)."""
     csv_path = Path(csv_path)
-    tmp = atomic_path(csv_path)
-    df.to_csv(tmp, index=False, float_format="%.6f")
-    commit(tmp, csv_path)
-    written = [csv_path]
-    try:
-        import pyarrow  # noqa: F401
-    except ImportError:
-        return written
-    pq = csv_path.with_suffix(".parquet")
-    df.to_parquet(pq, index=False)
-    return written + [pq]
+    written = []
+    for path, write in ((csv_path, lambda p: df.to_csv(p, index=False, float_format="%.6f")),
+                        (csv_path.with_suffix(".parquet"), lambda p: df.to_parquet(p, index=False))):
+        tmp = atomic_path(path)
+        write(tmp)
+        commit(tmp, path)
+        written.append(path)
+    return written
 
 
 def parse_range(text: str, name: str = "range") -> tuple[float | None, float | None]:

@@ -31,6 +31,7 @@ rule descriptive_list:
     output:
         workbook=f"{R}/Descriptive_List.xlsx",
         virtual=f"{R}/virtual_cohort.csv",
+        virtual_parquet=f"{R}/virtual_cohort.parquet",  # typed twin of the CSV (write_table_twins)
         tri_vs_hex=f"{R}/virtual_cohort_tri_vs_hex.csv",
     log:
         f"{LOGS}/descriptive_list.log",

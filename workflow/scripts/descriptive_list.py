@@ -1,5 +1,5 @@
 # Adapter: the Descriptive_List workbook (sheet 1 the virtual cohort, sheet 2 the patients; units in the
-# headers) and the virtual cohort's CSV twin (+ Parquet if pyarrow is installed) for queries.
+# headers) and the virtual cohort's CSV and Parquet twins for queries.
 import pandas as pd
 
 from spinecohort.logs import to_file
