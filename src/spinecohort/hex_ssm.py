@@ -141,7 +141,7 @@ def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, 
     least one, their count and the lowest scaled Jacobian met.  ``contact=True``: of the models after the
     disc-contact distraction (``hex_ssm.contact``), and how many models it moved.
     """
-    from .quality import morph_scaled_jacobian_nb, scaled_jacobian
+    from .quality import morph_scaled_jacobian_nb, scaled_jacobian_batch_nb
 
     bad = models_bad = distracted = 0
     worst = np.inf
@@ -159,8 +159,7 @@ def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, 
             if len(moved):
                 pts = (mean + np.tensordot(wb[moved], fields, axes=(1, 0))
                        + hex_ssm.contact.hex_offsets(off[moved])[:, :n])
-                for k, p in zip(moved, pts):
-                    sj[k] = scaled_jacobian(p, hexes)
+                sj[moved] = scaled_jacobian_batch_nb(np.ascontiguousarray(pts), np.ascontiguousarray(hexes))
         inv = sj <= 0
         bad += int(inv.sum())
         models_bad += int(inv.any(1).sum())
