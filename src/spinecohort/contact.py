@@ -90,6 +90,16 @@ class ContactMap:
         gaps, normals = self.gaps(hex_points)
         return gaps, level_offsets(gaps, normals, self.min_height_mm)
 
+    def level_offsets_of_weights(self, mean: np.ndarray, fields: np.ndarray,
+                                 weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``level_offsets`` of the linear models ``mean + fields . w`` (mean (n, 3), fields (m, n, 3) mm,
+        weights (B, m) SD), sampling only the endplate nodes (no full model is formed)."""
+        nodes = np.unique(np.concatenate(self.upper + self.lower))
+        local = np.searchsorted(nodes, np.arange(len(mean)))  # valid at the kept nodes
+        pts = mean[nodes] + np.tensordot(weights, fields[: weights.shape[1], nodes], axes=(1, 0))
+        gaps, normals = disc_gaps(pts, [local[u] for u in self.upper], [local[lo] for lo in self.lower])
+        return gaps, level_offsets(gaps, normals, self.min_height_mm)
+
     def hex_offsets(self, level_offsets_mm: np.ndarray) -> np.ndarray:
         """Hex node offsets (B, n_nodes, 3) mm."""
         return np.einsum("nl,blc->bnc", self.hex, level_offsets_mm)

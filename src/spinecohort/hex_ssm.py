@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .contact import ContactMap, contact_map, disc_gaps, level_offsets
+from .contact import ContactMap, contact_map
 from .hex_template import HexTemplate, disc_runs
-from .landmarks import Landmarks
+from .landmarks import DISCS, Landmarks
 from .pca import SSM
 
 
@@ -121,16 +121,11 @@ def _interpolate_disc_fields(hf: np.ndarray, mean_layers: np.ndarray, layers: li
 
 def contact_offsets(hex_ssm: HexSSM, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Disc gaps (B, 17) mm and level offsets (B, 17, 3) mm of models ``weights`` (B, m), computed on the
-    endplate nodes only (cheap: no full model is sampled).  Zero offsets without a contact map."""
+    endplate nodes only.  Infinite gaps and zero offsets without a contact map."""
     w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
-    cmap = hex_ssm.contact
-    if cmap is None:
-        return np.full((len(w), 17), np.inf), np.zeros((len(w), 17, 3))
-    nodes = np.unique(np.concatenate(cmap.upper + cmap.lower))
-    local = np.searchsorted(nodes, np.arange(len(hex_ssm.mean)))  # valid at the nodes we keep
-    pts = hex_ssm.mean[nodes] + np.tensordot(w, hex_ssm.fields[: w.shape[1], nodes], axes=(1, 0))
-    gaps, normals = disc_gaps(pts, [local[u] for u in cmap.upper], [local[lo] for lo in cmap.lower])
-    return gaps, level_offsets(gaps, normals, cmap.min_height_mm)
+    if hex_ssm.contact is None:
+        return np.full((len(w), len(DISCS)), np.inf), np.zeros((len(w), len(DISCS), 3))
+    return hex_ssm.contact.level_offsets_of_weights(hex_ssm.mean, hex_ssm.fields, w)
 
 
 def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, chunk: int = 500,

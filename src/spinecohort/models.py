@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .contact import resolve_contact
+from .landmarks import DISCS
 from .fe_export import fe_model
 from .hex_ssm import HexSSM
 from .hex_template import HexTemplate
@@ -48,7 +49,7 @@ def hex_points_checked(template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarr
     inverted element repaired (local untangling).  The report's ``level_offsets_mm`` (17, 3) is the
     distraction applied (zeros if none): add ``contact.tri_offsets`` of it to the triangulated model."""
     pts = hex_ssm.sample(weights)
-    offsets = np.zeros((1, 17, 3))
+    offsets = np.zeros((1, len(DISCS), 3))
     if hex_ssm.contact is not None:
         pts = pts[None].copy()
         _, offsets = resolve_contact(None, pts, hex_ssm.contact)

@@ -25,10 +25,10 @@ import pandas as pd
 from .contact import distraction_summary, resolve_contact
 from .hex_ssm import HexSSM
 from .hex_template import HexTemplate
-from .landmarks import LEVELS, Landmarks
+from .landmarks import DISCS, LEVELS, Landmarks
 from .measure import measure
 from .pca import SSM
-from .quality import morph_scaled_jacobian_nb, scaled_jacobian, table3_per_model
+from .quality import morph_scaled_jacobian_nb, scaled_jacobian, scaled_jacobian_batch_nb, table3_per_model
 from .repair import RepairError, prepare_untangle, untangle
 from .store import model_name
 
@@ -64,8 +64,8 @@ def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray, chunk: int = D
     hexp = np.empty((len(w), *hex_ssm.mean.shape), np.float32)
     df_tri = ssm.deformation_fields(m).reshape(m, -1)
     df_hex = hex_ssm.fields[:m].reshape(m, -1)
-    gaps = np.full((len(w), 17), np.inf)
-    offsets = np.zeros((len(w), 17, 3))
+    gaps = np.full((len(w), len(DISCS)), np.inf)
+    offsets = np.zeros((len(w), len(DISCS), 3))
     for i in range(0, len(w), chunk):
         wb = w[i:i + chunk]
         t64 = (ssm.mean.ravel() + wb @ df_tri).reshape(len(wb), *ssm.mean.shape)
@@ -107,9 +107,11 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
     moved = (np.flatnonzero(np.abs(level_offsets).max(axis=(1, 2)) > 0) if level_offsets is not None
              else np.array([], dtype=np.int64))
     shift = {}
-    for k in moved:  # few models per shard: their own float64 coordinates
-        shift[k] = hex_ssm.contact.hex_offsets(level_offsets[k:k + 1])[0, :n]
-        sj[k] = scaled_jacobian(mean + np.tensordot(w[k], fields, axes=(0, 0)) + shift[k], hexes)
+    if len(moved):  # distracted models: checked on their own float64 coordinates, one batched kernel call
+        offsets = hex_ssm.contact.hex_offsets(level_offsets[moved])[:, :n]
+        shift = dict(zip(moved.tolist(), offsets))
+        pts = mean + np.tensordot(w[moved], fields, axes=(1, 0)) + offsets
+        sj[moved] = scaled_jacobian_batch_nb(np.ascontiguousarray(pts), hexes)
     invalid = (sj <= 0).sum(axis=1)
     rows = pd.DataFrame({"model_id": np.asarray(model_ids, dtype=np.int64), "min_sj_before": sj.min(axis=1),
                          "invalid_before": invalid, "nodes_moved": 0, "max_displacement_mm": 0.0,
