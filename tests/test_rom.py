@@ -18,8 +18,8 @@ from spinecohort.abaqus import FEModel, LinearElastic, Section, read_inp_nodes, 
 from spinecohort.calculix import check_input
 from spinecohort.fe_export import DEFAULT_MATERIALS, materials_from_config
 from spinecohort.hex_template import HexTemplate
-from spinecohort.rom import (RomError, RomModel, column_levels, extract_rom_model, kabsch_rotations,
-                             rom_deck_text, run_case, validate)
+from spinecohort.rom import (FacetContact, RomError, RomModel, column_levels, extract_rom_model, facet_gaps,
+                             kabsch_rotations, rom_deck_text, run_case, validate)
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_CCX = shutil.which("ccx") is not None
@@ -110,8 +110,13 @@ def test_rom_submodel_of_a_functional_unit(template):
     m = extract_rom_model(template, template.nodes, "L3", "L4")
     n2, nq = len(template.grid.nodes), len(template.grid.quads)
     res = template.resolution
-    # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes
-    assert len(m.fe.element_blocks["HEXES"][1]) == nq * (2 * res.body_layers + res.disc_layers + 2)
+    # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes; the annulus
+    # hexes in their own C3D8R block, the rest C3D8
+    n_af = len(template.elsets["D_L3L4_AF"])
+    assert m.fe.element_blocks["HEXES"][0] == "C3D8" and m.fe.element_blocks["HEXES_AF"] == ("C3D8R", m.fe.element_blocks["HEXES_AF"][1])
+    assert len(m.fe.element_blocks["HEXES_AF"][1]) == n_af
+    assert len(m.fe.element_blocks["HEXES"][1]) + n_af == nq * (2 * res.body_layers + res.disc_layers + 2)
+    assert set(m.fe.element_sets["D_L3L4_AF"]) == set(range(len(m.fe.element_blocks["HEXES"][1]), len(m.hex_elements)))
     # ligaments L3-L4: SSL, ISL, 2 LF, 2 CL, 2 ITL, PLL, ALL = 10, one elset and table each
     assert m.ligament_groups == {"SSL": 1, "ISL": 1, "LF": 2, "CL": 2, "ITL": 2, "PLL": 1, "ALL": 1}
     assert len(m.fe.element_blocks["LIGAMENTS"][1]) == 10
@@ -124,7 +129,110 @@ def test_rom_submodel_of_a_functional_unit(template):
     assert "ALL" not in no_all.ligament_groups
 
 
+def test_ligament_law_is_the_bilinear_law_with_rounded_corners():
+    from spinecohort.fe_export import DEFAULT_LIGAMENTS, ligament_force_n, ligament_table
+
+    law = DEFAULT_LIGAMENTS["CL"]  # E1 7.5, E2 32.9 MPa, transition 25 %, 30 mm^2
+    a1, a2 = law.e1_mpa * law.area_mm2, law.e2_mpa * law.area_mm2
+    assert ligament_force_n(law, [-0.5, 0.0]).tolist() == [0.0, 0.0]  # tension only
+    # away from the corners it is the bilinear law, shifted down by the toe's E1 A toe / 2 (toe 1 %)
+    assert ligament_force_n(law, [0.1])[0] == pytest.approx(a1 * 0.1 - a1 * 0.005, rel=1e-9)
+    assert ligament_force_n(law, [0.8])[0] == pytest.approx(a1 * 0.25 + a2 * 0.55 - a1 * 0.005, rel=1e-9)
+    # the slope is continuous: no jump between neighbouring strains anywhere (a sharp corner jumps by E2 - E1)
+    e = np.linspace(0.0, 0.6, 6001)
+    slope = np.diff(ligament_force_n(law, e)) / np.diff(e)
+    assert np.abs(np.diff(slope)).max() < 0.01 * (a2 - a1)
+    table = np.array(ligament_table(law, 12.0))
+    assert np.all(np.diff(table[:, 1]) > 0) and table[0, 0] == 0.0 and table[1].tolist() == [0.0, 0.0]
+    assert table[-1, 1] == pytest.approx(24.0)  # to 200 % strain of the 12 mm spring
+
+
+def test_facet_gap_directions_follow_the_joint_angles(template):
+    # direction = outward normal of the superior facet (SAP -> IAP).  A vertical joint facing medially
+    # (transverse 90, frontal 90: a sagittal plane) closes laterally: the normal is medial, minus the side's
+    # lateral axis; a vertical frontal plane (90, 0) faces posteriorly; a horizontal one (0, x) cranially.
+    cl = template.ligaments[template.elsets["LIG_CL"]]
+    for t, f, expect in ((90.0, 90.0, "medial"), (90.0, 0.0, "posterior"), (0.0, 0.0, "cranial")):
+        fc = FacetContact(0.5, 400.0, (("T1", t), ("L5", t)), (("T1", f), ("L5", f)))
+        gaps = facet_gaps(template, template.nodes, cl, fc)
+        assert len(gaps) == 32 and {g[1][-1] for g in gaps} == {"L", "R"}  # 16 segments x 2 sides
+        assert all(g[0][0] == 0.5 and g[0][2] == 400.0 for g in gaps)
+        n = np.array([g[0][1] for g in gaps])
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, rtol=1e-12)
+        side = np.array([1.0 if g[1].endswith("R") else -1.0 for g in gaps])
+        # template frame RAS (x right, y anterior, z up); the vertebrae tilt up to ~30 deg in the sagittal
+        # plane (kyphosis/lordosis) but not laterally at the mean
+        if expect == "medial":
+            assert np.all(n[:, 0] * side < -0.95), n[:, 0] * side
+        elif expect == "posterior":
+            assert np.all(np.abs(n[:, 0]) < 0.05) and np.all(n[:, 1] < -0.85), n
+        else:
+            assert np.all(np.abs(n[:, 0]) < 0.05) and np.all(n[:, 2] > 0.85), n
+    # the default (White & Panjabi) anchors interpolate: T11 halfway between T10 and T12
+    assert FacetContact().angles_deg("T11") == pytest.approx((75.0, 12.5))
+    assert FacetContact().angles_deg("L3") == pytest.approx((90.0, 45.0))
+
+
+def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
+    m = extract_rom_model(template, template.nodes, "L2", "L4", facets=FacetContact())
+    assert m.ligament_groups["FACET"] == 4  # L2-L3 and L3-L4, left and right
+    etype, conn = m.fe.element_blocks["FACETS"]
+    assert etype == "GAPUNI"
+    # the two nodes of a gap coincide (a rigid turn of the whole joint must not open or close it), at the
+    # midpoint of the two process tips, and are new nodes (no template source)
+    np.testing.assert_array_equal(m.fe.nodes[conn[:, 0]], m.fe.nodes[conn[:, 1]])
+    assert (m.source_nodes[conn] == -1).all()
+    # each is tied to its own vertebra: L2 (top) by the rigid body, L4 (bottom) fixed, L3 by its arch truss
+    arch_l3 = m.fe.element_blocks["ARCHES"][1]
+    for lower, upper in conn:
+        in_top, in_fixed = upper in m.rigid_nodes["L2"], lower in m.fixed_nodes
+        in_l3 = {lower, upper} & set(arch_l3.ravel().tolist())
+        assert (in_top and lower in in_l3) or (in_fixed and upper in in_l3)
+    text = rom_deck_text(m, "axial_left", 7500.0)
+    assert text.count("*GAP, ELSET=FACET_") == 4 and "*ELEMENT, TYPE=GAPUNI, ELSET=FACETS" in text
+
+
 # --- CalculiX ---------------------------------------------------------------------------------------
+
+@needs_ccx
+def test_gap_element_closes_at_its_clearance(tmp_path):
+    # node 2 pulled towards the fixed node 1 by 100 N against a 10 N/mm spring to a fixed node 3; the gap
+    # (clearance 0.5 mm, 1000 N/mm, direction 1 -> 2) closes after 0.5 mm: 100 = 10 u + 1000 (u - 0.5)
+    # -> u = 600 / 1010 = 0.59406 mm (without the gap: 10 mm)
+    from spinecohort.calculix import run_ccx
+    from spinecohort.abaqus import model_to_inp_text
+
+    fe = FEModel(np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]),
+                 {"G": ("GAPUNI", np.array([[0, 1]])), "S": ("SPRINGA", np.array([[1, 2]]))},
+                 sections=[Section("G", gap=(0.5, (1.0, 0.0, 0.0), 1000.0)),
+                           Section("S", spring_force_elongation=((-100.0, -10.0), (100.0, 10.0)))])
+    deck = tmp_path / "gap.inp"
+    deck.write_text(model_to_inp_text(fe) + "*BOUNDARY\n1, 1, 3\n3, 1, 3\n2, 2, 3\n*STEP, NLGEOM\n*STATIC\n"
+                    "0.1, 1.0, 1e-5, 0.1\n*CLOAD\n2, 1, -100.\n*NODE PRINT, NSET=NALL\nU\n*END STEP\n")
+    res = run_ccx(deck, tmp_path)
+    u = res.node_prints[-1].values[1][0]
+    assert u == pytest.approx(-600.0 / 1010.0, rel=1e-4)
+
+
+@needs_ccx
+def test_two_segments_in_series_rotate_as_each_does_alone(template, tmp_path):
+    # A pure moment is the same at every level, so a segment must rotate as much inside a two-segment
+    # model as alone.  With C3D8R everywhere ccx 2.20 failed this (L3-L4: 4.75 deg alone, 2.6 deg inside
+    # L2-L4 on the default mean; docs/rom.md); the configured elements (C3D8, annulus C3D8R) pass to 0.2 %.
+    # Discs alone (no ligaments, no facets) at 7.5 N.m axial rotation, test-config mean.
+    kw = dict(ligament_groups=(), hex_type="C3D8", annulus_hex_type="C3D8R")
+    alone = run_case(extract_rom_model(template, template.nodes, "L3", "L4", **kw), "axial_left",
+                     tmp_path / "alone", initial_increment=0.1, max_increment=0.25, average_force_n=100.0)
+    pair = run_case(extract_rom_model(template, template.nodes, "L2", "L4", **kw), "axial_left",
+                    tmp_path / "pair", initial_increment=0.1, max_increment=0.25, average_force_n=100.0)
+    one = alone.rotations_deg[("L3", "L4")][2]
+    inside = pair.rotations_deg[("L3", "L4")][2]
+    assert one > 2.0  # a few degrees: the disc is loaded, not the solver's noise
+    assert inside == pytest.approx(one, rel=0.05)
+    # and the top of the pair turns by the sum of its two segments (small coupled rotations aside)
+    total = pair.rotations_deg[("L2", "L3")][2] + inside
+    assert pair.curve[-1, 1] == pytest.approx(total, rel=0.03)
+
 
 @needs_ccx
 def test_pure_moment_on_elastic_column_matches_beam_theory(tmp_path):
@@ -171,7 +279,8 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
     text = rom_deck_text(m, "flexion", 7500.0)
     deck = tmp_path / "fu.inp"
     deck.write_text(text.split("*NODE, NSET=RBNODES")[0])
-    for card in ("*ELASTIC\n12000.0, 0.3", "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.0005",
+    for card in ("*ELASTIC\n12000.0, 0.3", "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.005",
+                 "*ELEMENT, TYPE=C3D8, ELSET=HEXES", "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_AF",
                  "*USER MATERIAL, CONSTANTS=10", "SYSTEM=CYLINDRICAL", "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",
                  "*SPRING, ELSET=LIG_ALL_", "*RIGID BODY, NSET=RB_L3", "*STEP, NLGEOM"):
         assert card in text, card

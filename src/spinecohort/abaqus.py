@@ -27,10 +27,11 @@ from pathlib import Path
 import numpy as np
 
 #: nodes per element of each supported Abaqus/CalculiX element type.
-NODES_PER_ELEMENT = {"C3D8": 8, "C3D8I": 8, "C3D8R": 8, "S3": 3, "S4": 4, "S4R": 4, "SPRINGA": 2, "T3D2": 2}
+NODES_PER_ELEMENT = {"C3D8": 8, "C3D8I": 8, "C3D8R": 8, "S3": 3, "S4": 4, "S4R": 4, "SPRINGA": 2, "T3D2": 2,
+                     "GAPUNI": 2}
 #: meshio cell type of each element type (hex node order is the same in VTK and Abaqus).
 MESHIO_CELL_TYPE = {"C3D8": "hexahedron", "C3D8I": "hexahedron", "C3D8R": "hexahedron", "S3": "triangle",
-                    "S4": "quad", "S4R": "quad", "SPRINGA": "line", "T3D2": "line"}
+                    "S4": "quad", "S4R": "quad", "SPRINGA": "line", "T3D2": "line", "GAPUNI": "line"}
 SOLID_TYPES = {"C3D8", "C3D8I", "C3D8R"}
 SHELL_TYPES = {"S3", "S4", "S4R"}
 # ccx 2.20 rejects or mis-handles these (see reference/calculix.md): refuse them instead of writing a
@@ -86,6 +87,8 @@ class Section:
     spring_force_elongation: (K, 2) table of (force N, elongation mm), elongation ascending; used in
     an NLGEOM step it is tension-only if force is 0 for elongation <= 0 (ccx linearises it otherwise).
     orientation: name of an `Orientation` (solid sections only), e.g. the annulus' fibre system.
+    gap: (clearance mm, unit direction (3,), stiffness N/mm) of GAPUNI elements (ccx *GAP): the gap stays
+    open while clearance + direction . (u2 - u1) > 0 (node 1 -> node 2; checked on ccx 2.20).
     """
     elset: str
     material: str | None = None
@@ -93,6 +96,7 @@ class Section:
     area_mm2: float | None = None
     spring_force_elongation: tuple[tuple[float, float], ...] | None = None
     orientation: str | None = None
+    gap: tuple[float, tuple[float, float, float], float] | None = None
 
 
 @dataclass
@@ -216,6 +220,14 @@ def validate_model(model: FEModel) -> None:
             if np.any(np.diff(table[:, 1]) <= 0):
                 raise ValueError(f"spring section on {sec.elset!r}: elongations must be strictly ascending")
             continue
+        if etype == "GAPUNI":
+            if sec.gap is None:
+                raise ValueError(f"gap section on {sec.elset!r} needs gap=(clearance, direction, stiffness)")
+            clearance, direction, stiffness = sec.gap
+            if not (np.isfinite(clearance) and stiffness > 0 and abs(np.linalg.norm(direction) - 1) < 1e-6):
+                raise ValueError(f"gap section on {sec.elset!r}: needs a finite clearance (mm), a unit direction "
+                                 f"and a stiffness > 0 N/mm, got {sec.gap}")
+            continue
         if sec.material is None or sec.material.upper() not in mat_names:
             raise ValueError(f"section on {sec.elset!r} refers to unknown material {sec.material!r}")
         if sec.orientation is not None and (etype not in SOLID_TYPES
@@ -293,6 +305,10 @@ def _section_text(model: FEModel, sec: Section) -> str:
         # first data line of a SPRINGA *SPRING is empty (no DOFs for axial springs)
         return (f"*SPRING, ELSET={sec.elset}, NONLINEAR\n\n"
                 + "".join(f"{_fmt_float(f)}, {_fmt_float(d)}\n" for f, d in table))
+    if etype == "GAPUNI":
+        clearance, (nx, ny, nz), stiffness = sec.gap
+        vals = ", ".join(_fmt_float(v) for v in (clearance, nx, ny, nz))
+        return f"*GAP, ELSET={sec.elset}\n{vals}, , {_fmt_float(stiffness)}\n"
     if etype in SHELL_TYPES:
         return f"*SHELL SECTION, ELSET={sec.elset}, MATERIAL={sec.material}\n{_fmt_float(sec.thickness_mm)}\n"
     if etype == "T3D2":

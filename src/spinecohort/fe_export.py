@@ -47,7 +47,7 @@ class FEMaterials:
     cancellous: tuple[float, float] = (100.0, 0.2)
     cep: tuple[float, float] = (24.0, 0.4)
     shell_thickness_mm: float = 1.0  # posterior elements, sacrum, pelvis (S3, cortical material)
-    nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0005)  # C10, C01 MPa, D1 1/MPa
+    nucleus: tuple[float, float, float] = (0.12, 0.03, 0.005)  # C10, C01 MPa, D1 1/MPa (K 400 MPa)
     annulus_c10_mpa: float = 0.225
     annulus_d1_per_mpa: float = 0.46  # from nu = 0.45 of the ground substance at mu = 0.45 MPa
     fibre_k1_mpa: float = 1.8
@@ -101,17 +101,43 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
     )
 
 
-def ligament_table(law: LigamentLaw, rest_length_mm: float, max_strain: float = 2.0) -> tuple[tuple[float, float], ...]:
-    """(force N, elongation mm) pairs, ascending: zero force in compression (tension only in an NLGEOM
-    step), E1 A up to the transition strain, E2 A beyond, extended to `max_strain` (ccx holds the force
-    constant past the table's end)."""
+def ligament_force_n(law: LigamentLaw, strain: np.ndarray, toe_strain: float = 0.01,
+                     blend: float = 0.2) -> np.ndarray:
+    """Tension-only ligament force (N) at the given engineering strains: the bilinear law (E1 A up to the
+    transition strain, E2 A beyond) with its two corners rounded so that the slope is continuous (C1):
+    a quadratic toe from 0 to `toe_strain` (slope 0 -> E1 A; the linear part shifts by E1 A toe / 2, a
+    physiological toe region) and a quadratic blend over +-`blend` x the transition strain.  ccx's Newton
+    iterations cycled between the two slopes of a sharp corner (docs/rom.md)."""
+    e = np.asarray(strain, dtype=np.float64)
+    a1, a2 = law.e1_mpa * law.area_mm2, law.e2_mpa * law.area_mm2
+    et, w = law.transition_strain, blend * law.transition_strain
+
+    def slope(x):  # piecewise-linear slope, integrated exactly below
+        s = np.where(x < toe_strain, a1 * x / toe_strain, a1)
+        ramp = np.clip((x - (et - w)) / (2 * w), 0.0, 1.0)
+        return np.where(x <= 0, 0.0, s + (a2 - a1) * ramp)
+
+    # the slope is linear between its breakpoints, so the trapezoid rule on a grid holding the breakpoints
+    # and the query strains integrates it exactly
+    grid = np.unique(np.concatenate([[0.0, toe_strain, et - w, et + w], np.clip(e.ravel(), 0.0, None)]))
+    f = np.concatenate([[0.0], np.cumsum(0.5 * (slope(grid[1:]) + slope(grid[:-1])) * np.diff(grid))])
+    return np.where(e <= 0, 0.0, np.interp(e, grid, f))
+
+
+def ligament_table(law: LigamentLaw, rest_length_mm: float, max_strain: float = 2.0,
+                   toe_strain: float = 0.01, blend: float = 0.2) -> tuple[tuple[float, float], ...]:
+    """(force N, elongation mm) pairs, ascending, of `ligament_force_n` for a spring of the given rest
+    length: zero force in compression (tension only in an NLGEOM step), 6 points across the toe and the
+    transition each, extended to `max_strain` (ccx holds the force constant past the table's end)."""
     if not rest_length_mm > 0:
         raise ValueError(f"ligament rest length must be > 0 mm, got {rest_length_mm}")
-    k1 = law.e1_mpa * law.area_mm2 / rest_length_mm  # N/mm
-    k2 = law.e2_mpa * law.area_mm2 / rest_length_mm
-    d_t = law.transition_strain * rest_length_mm
-    d_max = max_strain * rest_length_mm
-    return ((0.0, -rest_length_mm), (0.0, 0.0), (k1 * d_t, d_t), (k1 * d_t + k2 * (d_max - d_t), d_max))
+    et, w = law.transition_strain, blend * law.transition_strain
+    strains = np.unique(np.concatenate([np.linspace(0.0, toe_strain, 7), np.linspace(et - w, et + w, 7),
+                                        [max_strain]]))
+    strains = strains[(strains >= 0) & (strains <= max_strain)]
+    force = ligament_force_n(law, strains, toe_strain, blend)
+    rows = [(0.0, -float(rest_length_mm))] + [(float(f), float(e * rest_length_mm)) for f, e in zip(force, strains)]
+    return tuple(rows)
 
 
 def material_cards(mats: FEMaterials) -> list:
