@@ -149,7 +149,6 @@ def facet_gaps(template: HexTemplate, points: np.ndarray, pairs: np.ndarray,
                facets: FacetContact) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
     """((clearance, direction, stiffness), elset name) of each facet pair (IAP tip of the upper vertebra,
     SAP tip of the lower), in the order of `pairs`; direction from the SAP towards the IAP."""
-    n2 = len(template.grid.nodes)
     owner = {}
     for v in LEVELS:
         for node in _arch_nodes(template, v):
@@ -157,9 +156,7 @@ def facet_gaps(template: HexTemplate, points: np.ndarray, pairs: np.ndarray,
     out = []
     for iap, sap in pairs:
         up, lo = owner[int(iap)], owner[int(sap)]
-        inf, sup = (_layer(template, up, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
-        frame = _mean_frame(fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame)
-        centre = points[np.concatenate([inf, sup])].mean(0)
+        frame, centre = vertebra_frame(template, points, up)
         side = 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0  # +1 right
         n = facets.normal(up, frame, side)
         name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
@@ -343,8 +340,7 @@ def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, botto
         inf_l, sup_l = _layer(template, v, 0.0), _layer(template, v, 1.0)
         inf, sup = inf_l * n2 + np.arange(n2), sup_l * n2 + np.arange(n2)
         endplates[v] = new_of[np.concatenate([inf, sup])]
-        f_sup, f_inf = fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame
-        frames[v] = _mean_frame(f_sup, f_inf)
+        frames[v] = vertebra_frame(template, points, v)[0]
         wall = new_of[_posterior_wall(template, v)]
         a = np.concatenate([new_of[anchors[v]], np.asarray(extra_tied[v], dtype=np.int64)])
         tied = np.concatenate([wall, a])
@@ -380,6 +376,15 @@ def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, botto
                  heading=heading or f"spinecohort ROM model {top}-{bottom}",
                  orientations=[o for o in orientations.values() if o.name in used_orient])
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(len(hexes)), source, lig_counts)
+
+
+def vertebra_frame(template: HexTemplate, points: np.ndarray, level: str) -> tuple[np.ndarray, np.ndarray]:
+    """Anatomical frame (3, 3: columns lateral, anterior, cranial) of a vertebra, between its two endplate
+    frames, and the centre (mm) of its endplate nodes."""
+    n2 = len(template.grid.nodes)
+    inf, sup = (_layer(template, level, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
+    frame = _mean_frame(fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame)
+    return frame, points[np.concatenate([inf, sup])].mean(0)
 
 
 def _mean_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
