@@ -757,7 +757,7 @@ def validation_figure(validation: pd.DataFrame, path: str | Path, title: str = "
                       fontsize=7)
         ax.set_ylabel("ROM (deg)")
         ax.set_title(f"{title} {'lumbar model (pelvis..T10)' if mode == 'lumbar' else 'functional units'}".strip())
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left")  # the right end holds the tallest bars (axial rotation)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
