@@ -173,6 +173,18 @@ def test_facet_gap_directions_follow_the_joint_angles(template):
     assert FacetContact().angles_deg("L3") == pytest.approx((90.0, 45.0))
 
 
+def test_facet_contact_from_the_config():
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["rom"]["facets"]
+    fc = FacetContact.from_config(cfg)
+    assert fc.clearance_mm == cfg["clearance_mm"] and fc.stiffness_n_per_mm == cfg["stiffness_n_per_mm"]
+    assert fc.angles_deg("T5") == (60.0, -20.0) and fc.angles_deg("L4") == (90.0, 45.0)
+    assert FacetContact.from_config({**cfg, "enabled": False}) is None
+    with pytest.raises(ValueError, match="cranial to caudal"):
+        FacetContact(transverse_deg=(("L5", 90.0), ("T1", 60.0))).angles_deg("T5")
+
+
 def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
     m = extract_rom_model(template, template.nodes, "L2", "L4", facets=FacetContact())
     assert m.ligament_groups["FACET"] == 4  # L2-L3 and L3-L4, left and right
