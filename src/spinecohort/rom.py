@@ -149,14 +149,12 @@ def facet_gaps(template: HexTemplate, points: np.ndarray, pairs: np.ndarray,
                facets: FacetContact) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
     """((clearance, direction, stiffness), elset name) of each facet pair (IAP tip of the upper vertebra,
     SAP tip of the lower), in the order of `pairs`; direction from the SAP towards the IAP."""
-    owner = {}
-    for v in LEVELS:
-        for node in _arch_nodes(template, v):
-            owner[int(node)] = v
+    owner = _arch_owner(template)
+    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs[:, 0]}}
     out = []
     for iap, sap in pairs:
         up, lo = owner[int(iap)], owner[int(sap)]
-        frame, centre = vertebra_frame(template, points, up)
+        frame, centre = frames[up]
         side = 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0  # +1 right
         n = facets.normal(up, frame, side)
         name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
@@ -207,6 +205,11 @@ def _arch_nodes(template: HexTemplate, level: str) -> np.ndarray:
     if key not in template.elsets:
         return np.zeros(0, dtype=np.int64)
     return np.unique(template.tris[template.elsets[key]])
+
+
+def _arch_owner(template: HexTemplate) -> dict[int, str]:
+    """Template node id of every posterior-arch node -> its vertebra."""
+    return {int(n): v for v in LEVELS for n in _arch_nodes(template, v)}
 
 
 def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, bottom: str,
@@ -265,7 +268,7 @@ def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, botto
     # each facet joint: two coincident nodes at the midpoint of the two process tips, one tied to each
     # vertebra's arch.  Coincident, so that a rigid rotation of the whole joint (L3 turns ~12 deg in the
     # lumbar model) does not open or close the gap, as it did between the two tips 12 mm apart.
-    owner = {int(n): v for v in bones for n in arch[v]}
+    owner = _arch_owner(template)
     extra_tied: dict[str, list[int]] = {v: [] for v in bones}
     facet_conn = np.zeros((0, 2), dtype=np.int64)
     if len(facet_pairs):
