@@ -6,6 +6,8 @@ min_version("9.0")
 
 
 configfile: "config/config.yaml"
+
+
 report: "workflow/report/workflow.rst"
 
 
@@ -22,6 +24,6 @@ include: "workflow/rules/release.smk"  # last: its input function uses every sta
 
 
 rule all:
+    default_target: True
     input:
         final_outputs(),
-    default_target: True

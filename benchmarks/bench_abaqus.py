@@ -14,8 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
-from spinecohort.abaqus import (FEModel, LinearElastic, Section, parse_template, read_inp_nodes,
-                                substitute_coordinates, write_inp)
+from spinecohort.fe.abaqus import (
+    FEModel,
+    LinearElastic,
+    Section,
+    parse_template,
+    read_inp_nodes,
+    substitute_coordinates,
+    write_inp,
+)
 
 
 def hex_block(n_nodes: int) -> FEModel:
@@ -30,14 +37,27 @@ def hex_block(n_nodes: int) -> FEModel:
         return (k * (nx + 1) + j) * (nx + 1) + i
 
     k, j, i = (a.ravel() for a in np.meshgrid(np.arange(nz), np.arange(nx), np.arange(nx), indexing="ij"))
-    hexes = np.column_stack([nid(i, j, k), nid(i + 1, j, k), nid(i + 1, j + 1, k), nid(i, j + 1, k),
-                             nid(i, j, k + 1), nid(i + 1, j, k + 1), nid(i + 1, j + 1, k + 1), nid(i, j + 1, k + 1)])
+    hexes = np.column_stack(
+        [
+            nid(i, j, k),
+            nid(i + 1, j, k),
+            nid(i + 1, j + 1, k),
+            nid(i, j + 1, k),
+            nid(i, j, k + 1),
+            nid(i + 1, j, k + 1),
+            nid(i + 1, j + 1, k + 1),
+            nid(i, j + 1, k + 1),
+        ]
+    )
     half = len(hexes) // 2
-    return FEModel(nodes, {"BODY": ("C3D8", hexes)},
-                   node_sets={"BASE": np.flatnonzero(nodes[:, 2] < 1), "TOP": np.flatnonzero(nodes[:, 2] > nz - 0.5)},
-                   element_sets={"LOWER": np.arange(half), "UPPER": np.arange(half, len(hexes))},
-                   materials=[LinearElastic("BONE", 12000.0, 0.3)],
-                   sections=[Section("LOWER", "BONE"), Section("UPPER", "BONE")])
+    return FEModel(
+        nodes,
+        {"BODY": ("C3D8", hexes)},
+        node_sets={"BASE": np.flatnonzero(nodes[:, 2] < 1), "TOP": np.flatnonzero(nodes[:, 2] > nz - 0.5)},
+        element_sets={"LOWER": np.arange(half), "UPPER": np.arange(half, len(hexes))},
+        materials=[LinearElastic("BONE", 12000.0, 0.3)],
+        sections=[Section("LOWER", "BONE"), Section("UPPER", "BONE")],
+    )
 
 
 def best_of(fn, repeats=3):
@@ -79,8 +99,10 @@ def main() -> None:
         mesh = meshio.Mesh(model.nodes, [("hexahedron", model.element_blocks["BODY"][1])])
         t_meshio, _ = best_of(lambda: meshio.write(tmp / "meshio.inp", mesh, file_format="abaqus"), repeats=1)
         t_ours, _ = best_of(lambda: write_inp(model, tmp / "ours.inp"), repeats=1)
-        print(f"meshio.write abaqus at {len(model.nodes)} nodes: {t_meshio:.2f} s; write_inp {t_ours:.2f} s; "
-              f"speed-up x{t_meshio / t_ours:.1f}")
+        print(
+            f"meshio.write abaqus at {len(model.nodes)} nodes: {t_meshio:.2f} s; write_inp {t_ours:.2f} s; "
+            f"speed-up x{t_meshio / t_ours:.1f}"
+        )
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shards", help="comma-separated shard numbers (default: the whole cohort)")
-    ap.add_argument("--snakemake-args", default="", help="extra snakemake arguments, e.g. \"--config ...\"")
+    ap.add_argument("--snakemake-args", default="", help='extra snakemake arguments, e.g. "--config ..."')
     args = ap.parse_args()
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     r = ROOT / cfg["results"]
@@ -36,12 +36,19 @@ def main() -> int:
     n_sh = -(-total // store["shard_models"])
     shards = list(range(n_sh)) if not args.shards else [int(s) for s in args.shards.split(",")]
     rel = cfg["results"]  # snakemake matches targets relative to the working directory
-    targets = ([f"{rel}/virtual_cohort.csv"] if not args.shards
-               else [f"{rel}/shards/{s:05d}.params.csv" for s in shards])
+    targets = [f"{rel}/virtual_cohort.csv"] if not args.shards else [f"{rel}/shards/{s:05d}.params.csv" for s in shards]
     # targets first: --rerun-triggers takes several values (mtime: do not redo the finished upstream stages
     # because of unrelated config edits)
-    cmd = [sys.executable, "-m", "snakemake", *targets, "-j2", *args.snakemake_args.split(),
-           "--rerun-triggers", "mtime"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        *targets,
+        "-j2",
+        *args.snakemake_args.split(),
+        "--rerun-triggers",
+        "mtime",
+    ]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -57,34 +64,52 @@ def main() -> int:
         bs = pd.read_csv(r / "benchmarks" / "sample_shard" / f"{name}.tsv", sep="\t").iloc[-1]
         bm = pd.read_csv(r / "benchmarks" / "measure_shard" / f"{name}.tsv", sep="\t").iloc[-1]
         n = rec["models"][1] - rec["models"][0]
-        rows.append({
-            "shard": s, "models": n, "sample_s": bs["s"], "sample_models_per_s": n / bs["s"],
-            "sample_rss_mb": bs["max_rss"], "check_repair_s": rec["check_repair_s"], "write_s": rec["write_s"],
-            "measure_s": bm["s"], "measure_models_per_s": n / bm["s"], "measure_rss_mb": bm["max_rss"],
-            "bytes": sum(v["bytes"] for k, v in rec["objects"].items() if "points" in k),
-            "inverted": int((q["invalid_before"] > 0).sum()), "repaired": int(q["repaired"].sum()),
-            "unrepaired": int((q["invalid_after"] > 0).sum()),
-            "min_sj_after": q["min_sj_after"].min(),
-        })
+        rows.append(
+            {
+                "shard": s,
+                "models": n,
+                "sample_s": bs["s"],
+                "sample_models_per_s": n / bs["s"],
+                "sample_rss_mb": bs["max_rss"],
+                "check_repair_s": rec["check_repair_s"],
+                "write_s": rec["write_s"],
+                "measure_s": bm["s"],
+                "measure_models_per_s": n / bm["s"],
+                "measure_rss_mb": bm["max_rss"],
+                "bytes": sum(v["bytes"] for k, v in rec["objects"].items() if "points" in k),
+                "inverted": int((q["invalid_before"] > 0).sum()),
+                "repaired": int(q["repaired"].sum()),
+                "unrepaired": int((q["invalid_after"] > 0).sum()),
+                "min_sj_after": q["min_sj_after"].min(),
+            }
+        )
     t = pd.DataFrame(rows)
     z = zarr.open_group(str(r / "cohort.zarr"), mode="r")
     attrs = dict(z.attrs)
     nodes = z["tri/points"].shape[1] + z["hex/points"].shape[1]
     pd.set_option("display.width", 200)
     print(t.round(3).to_string(index=False))
-    print(f"\nsnakemake -j2 wall time: {wall:.0f} s for {len(shards)} of {n_sh} shards "
-          f"({t['models'].sum()} models, {nodes} nodes per model: tri {z['tri/points'].shape[1]} + hex "
-          f"{z['hex/points'].shape[1]}, encoding {attrs['encoding']})")
+    print(
+        f"\nsnakemake -j2 wall time: {wall:.0f} s for {len(shards)} of {n_sh} shards "
+        f"({t['models'].sum()} models, {nodes} nodes per model: tri {z['tri/points'].shape[1]} + hex "
+        f"{z['hex/points'].shape[1]}, encoding {attrs['encoding']})"
+    )
     print(f"bytes per stored node: {t['bytes'].sum() / (t['models'].sum() * nodes):.2f}")
     job_s = (t["sample_s"] + t["measure_s"]).sum()
-    print(f"sample_shard: {t['sample_models_per_s'].median():.1f} models/s (median), peak RSS "
-          f"{t['sample_rss_mb'].max():.0f} MB; measure_shard: {t['measure_models_per_s'].median():.1f} models/s, "
-          f"peak RSS {t['measure_rss_mb'].max():.0f} MB")
-    print(f"repairs: {t['inverted'].sum()} models with inverted hexes, {t['repaired'].sum()} repaired, "
-          f"{t['unrepaired'].sum()} unrepaired; repair time {t['check_repair_s'].sum():.0f} s of "
-          f"{t['sample_s'].sum():.0f} s sampling")
-    print(f"whole cohort on 2 cores (extrapolated from these shards' job times): "
-          f"{job_s / len(shards) * n_sh / 2 / 60:.1f} min (target < 15 min)")
+    print(
+        f"sample_shard: {t['sample_models_per_s'].median():.1f} models/s (median), peak RSS "
+        f"{t['sample_rss_mb'].max():.0f} MB; measure_shard: {t['measure_models_per_s'].median():.1f} models/s, "
+        f"peak RSS {t['measure_rss_mb'].max():.0f} MB"
+    )
+    print(
+        f"repairs: {t['inverted'].sum()} models with inverted hexes, {t['repaired'].sum()} repaired, "
+        f"{t['unrepaired'].sum()} unrepaired; repair time {t['check_repair_s'].sum():.0f} s of "
+        f"{t['sample_s'].sum():.0f} s sampling"
+    )
+    print(
+        f"whole cohort on 2 cores (extrapolated from these shards' job times): "
+        f"{job_s / len(shards) * n_sh / 2 / 60:.1f} min (target < 15 min)"
+    )
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Throughput of spinecohort.measure: models measured per second.
+"""Throughput of spinecohort.measure.spinopelvic: models measured per second.
 
 Batch of 1,000 models with the landmark-set sizes of a realistic mesh (~95k vertices per model): 35 endplate
 patches of ~250 vertices (rims = their outer ring), two femoral-head caps of ~1,500 vertices, a 48-vertex
@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from spinecohort.landmarks import LEVELS, Landmarks
-from spinecohort.measure import measure
+from spinecohort.cohort.landmarks import LEVELS, Landmarks
+from spinecohort.measure.spinopelvic import measure
 
 
 def unit(v):
@@ -76,9 +76,15 @@ def template() -> tuple[np.ndarray, Landmarks]:
     symph = add(np.c_[gx.ravel(), np.full(gx.size, 70.0), gz.ravel() - 40.0])
     pts = np.vstack(chunks)
     lm = Landmarks(
-        part=np.zeros(len(pts), np.int16), part_names=("landmarks",), endplate_sup=ep_sup, endplate_inf=ep_inf,
-        rim_sup=rim_sup, rim_inf=rim_inf, femoral_head=fh,
-        body={lv: np.r_[ep_sup[lv], ep_inf[lv]] for lv in LEVELS}, pubic_symphysis=symph,
+        part=np.zeros(len(pts), np.int16),
+        part_names=("landmarks",),
+        endplate_sup=ep_sup,
+        endplate_inf=ep_inf,
+        rim_sup=rim_sup,
+        rim_inf=rim_inf,
+        femoral_head=fh,
+        body={lv: np.r_[ep_sup[lv], ep_inf[lv]] for lv in LEVELS},
+        pubic_symphysis=symph,
     )
     return pts, lm
 
@@ -93,8 +99,7 @@ def main(n_models: int = 1000) -> None:
     rot[:, 0, 1], rot[:, 1, 0], rot[:, 2, 2] = -np.sin(a), np.sin(a), 1.0
     batch = np.einsum("bij,nj->bni", rot, pts) + rng.normal(0, 5, (n_models, 1, 3))
     batch += rng.normal(0, 0.3, batch.shape)
-    print(f"batch: {n_models} models x {pts.shape[0]} landmark vertices "
-          f"({batch.nbytes / 1e6:.0f} MB float64)")
+    print(f"batch: {n_models} models x {pts.shape[0]} landmark vertices ({batch.nbytes / 1e6:.0f} MB float64)")
 
     measure(batch[:10], lm)  # warm-up
     t_batch = np.inf
@@ -113,8 +118,10 @@ def main(n_models: int = 1000) -> None:
     print(f"looped  : {1 / t_loop:10.0f} models/s  (measure() per model, {n_loop} models)")
     print(f"ratio batched/looped: {rate * t_loop:.1f}x")
     print(f"projected 16,807-model virtual cohort: {16807 / rate:.1f} s")
-    print(f"sanity: PI {df.PI.mean():.2f} +- {df.PI.std():.2f} deg, "
-          f"max PI_identity_err {df.PI_identity_err.max():.1e} deg, {df.shape[1]} columns")
+    print(
+        f"sanity: PI {df.PI.mean():.2f} +- {df.PI.std():.2f} deg, "
+        f"max PI_identity_err {df.PI_identity_err.max():.1e} deg, {df.shape[1]} columns"
+    )
 
 
 if __name__ == "__main__":

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.cohort import load_cohort_npz
-from spinecohort.measure import measure
-from spinecohort.pca import SSM
+from spinecohort.cohort.loading import load_cohort_npz
+from spinecohort.measure.spinopelvic import measure
 from spinecohort.personalize import CORE_PARAMETERS, Settings, build_model, project_shapes
+from spinecohort.ssm.model import SSM
 
 
 def best_of(f, n=3):
@@ -45,8 +45,10 @@ def main(results: str = "results", n_patients: int = 10) -> None:
     x = np.c_[w, np.zeros(len(w))]
     t_sub = best_of(lambda: model.fn(x, list(CORE_PARAMETERS)))
     t_full = best_of(lambda: measure(ssm.sample(w), cohort.landmarks))
-    print(f"measurement, 200 models: landmark subset {len(w) / t_sub:.0f} models/s, whole mesh "
-          f"{len(w) / t_full:.0f} models/s, ratio {t_full / t_sub:.1f}")
+    print(
+        f"measurement, 200 models: landmark subset {len(w) / t_sub:.0f} models/s, whole mesh "
+        f"{len(w) / t_full:.0f} models/s, ratio {t_full / t_sub:.1f}"
+    )
     print(f"surrogate ({settings.surrogate_samples} models): {t_sur:.2f} s")
     ids = cohort.ids[:n_patients]
     t0 = time.perf_counter()

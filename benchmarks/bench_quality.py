@@ -1,4 +1,4 @@
-"""Benchmark of spinecohort.quality / spinecohort.repair.
+"""Benchmark of spinecohort.mesh.quality / spinecohort.mesh.repair.
 
     python benchmarks/bench_quality.py            # 103 823 and 512 000 hexes
     python benchmarks/bench_quality.py 20         # one small mesh (quick run)
@@ -25,8 +25,19 @@ def grid(n):
     X = np.stack(np.meshgrid(i, i, i, indexing="ij"), -1).reshape(-1, 3).astype(float)
     nid = lambda a, b, c: (a * (n + 1) + b) * (n + 1) + c  # noqa: E731
     a, b, c = (t.ravel() for t in np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"))
-    H = np.stack([nid(a, b, c), nid(a + 1, b, c), nid(a + 1, b + 1, c), nid(a, b + 1, c),
-                  nid(a, b, c + 1), nid(a + 1, b, c + 1), nid(a + 1, b + 1, c + 1), nid(a, b + 1, c + 1)], 1)
+    H = np.stack(
+        [
+            nid(a, b, c),
+            nid(a + 1, b, c),
+            nid(a + 1, b + 1, c),
+            nid(a, b + 1, c),
+            nid(a, b, c + 1),
+            nid(a + 1, b, c + 1),
+            nid(a + 1, b + 1, c + 1),
+            nid(a, b + 1, c + 1),
+        ],
+        1,
+    )
     return X, H, nid
 
 
@@ -53,8 +64,10 @@ def vtk_filter(X, H):
     pts.SetData(numpy_to_vtk(X, deep=True))
     ug.SetPoints(pts)
     cells = vtk.vtkCellArray()
-    cells.SetData(numpy_to_vtk(np.arange(0, 8 * len(H) + 1, 8), deep=True, array_type=vtk.VTK_ID_TYPE),
-                  numpy_to_vtk(H.ravel().copy(), deep=True, array_type=vtk.VTK_ID_TYPE))
+    cells.SetData(
+        numpy_to_vtk(np.arange(0, 8 * len(H) + 1, 8), deep=True, array_type=vtk.VTK_ID_TYPE),
+        numpy_to_vtk(H.ravel().copy(), deep=True, array_type=vtk.VTK_ID_TYPE),
+    )
     ug.SetCells(vtk.VTK_HEXAHEDRON, cells)
     mq = vtk.vtkMeshQuality()
     mq.SetInputData(ug)
@@ -77,22 +90,30 @@ def bench_check(n):
     t_vtk, sj_vtk = best_of(run_vtk)
     t_nb, sj_nb = best_of(lambda: q.min_scaled_jacobian_nb(X, H))
     t_np, sj_np = best_of(lambda: q.scaled_jacobian(X, H))
-    print(f"agreement: max|numba - vtk| = {np.abs(sj_nb - sj_vtk).max():.1e}, "
-          f"max|numpy - vtk| = {np.abs(sj_np - sj_vtk).max():.1e}, invalid {int((sj_nb <= 0).sum())} "
-          f"(vtk {int((sj_vtk <= 0).sum())})")
+    print(
+        f"agreement: max|numba - vtk| = {np.abs(sj_nb - sj_vtk).max():.1e}, "
+        f"max|numpy - vtk| = {np.abs(sj_np - sj_vtk).max():.1e}, invalid {int((sj_nb <= 0).sum())} "
+        f"(vtk {int((sj_vtk <= 0).sum())})"
+    )
     print(f"vtkMeshQuality ScaledJacobian : {E / t_vtk / 1e6:6.2f} M elem/s  ({t_vtk * 1e3:7.1f} ms)")
-    print(f"numba min_scaled_jacobian_nb  : {E / t_nb / 1e6:6.2f} M elem/s  ({t_nb * 1e3:7.1f} ms)  "
-          f"ratio numba/vtk = {t_vtk / t_nb:.2f}x")
-    print(f"numpy scaled_jacobian (chunks): {E / t_np / 1e6:6.2f} M elem/s  ({t_np * 1e3:7.1f} ms)  "
-          f"ratio numpy/vtk = {t_vtk / t_np:.2f}x")
+    print(
+        f"numba min_scaled_jacobian_nb  : {E / t_nb / 1e6:6.2f} M elem/s  ({t_nb * 1e3:7.1f} ms)  "
+        f"ratio numba/vtk = {t_vtk / t_nb:.2f}x"
+    )
+    print(
+        f"numpy scaled_jacobian (chunks): {E / t_np / 1e6:6.2f} M elem/s  ({t_np * 1e3:7.1f} ms)  "
+        f"ratio numpy/vtk = {t_vtk / t_np:.2f}x"
+    )
     t_full, _ = best_of(lambda: q.full_metrics_nb(X, H))
     print(f"numba full_metrics_nb (7 metrics): {E / t_full / 1e6:6.2f} M elem/s  ({t_full * 1e3:7.1f} ms)")
     P = np.ascontiguousarray(X[H])
     t_bern, _ = best_of(lambda: q.bernstein_bounds_nb(P))
     print(f"numba bernstein_bounds_nb (27 coefficients): {E / t_bern / 1e6:6.2f} M elem/s")
     t_cert, cert = best_of(lambda: q.certify_valid(X, H), repeats=1)
-    print(f"certify_valid (all elements, incl. subdivision): {E / t_cert / 1e6:6.2f} M elem/s, "
-          f"{int((cert < 0).sum())} not certified")
+    print(
+        f"certify_valid (all elements, incl. subdivision): {E / t_cert / 1e6:6.2f} M elem/s, "
+        f"{int((cert < 0).sum())} not certified"
+    )
     t_all, _ = best_of(lambda: q.hex_quality_metrics(X, H), repeats=1)
     print(f"hex_quality_metrics (full + certificate): {t_all:.2f} s per sample")
     rng = np.random.default_rng(1)
@@ -100,8 +121,10 @@ def bench_check(n):
     modes = rng.normal(0, 0.03, (n_modes, len(X), 3))
     w = rng.uniform(-3, 3, (B, n_modes))
     t_fused, _ = best_of(lambda: q.morph_scaled_jacobian_nb(X, modes, w, H), repeats=2)
-    print(f"numba fused morph ({n_modes} modes) + check, B={B}: {B * E / t_fused / 1e6:6.2f} M elem/s "
-          f"({t_fused / B * 1e3:.1f} ms per sample)")
+    print(
+        f"numba fused morph ({n_modes} modes) + check, B={B}: {B * E / t_fused / 1e6:6.2f} M elem/s "
+        f"({t_fused / B * 1e3:.1f} ms per sample)"
+    )
 
 
 def bench_repair():
@@ -129,8 +152,11 @@ def bench_repair():
     cases = {
         "interior node pushed 1.6 h": push(nid(10, 10, 10), nid(11, 10, 10), 1.6),
         "sub-surface node through surface": push(nid(10, 10, 1), nid(10, 10, 0), 1.6),
-        **{f"localised shear mode w={w}": ref + np.c_[w * d[:, 2] / s * np.exp(-(d**2).sum(1) / (2 * s * s)),
-                                                          np.zeros((len(ref), 2))] for w in (6, 8)},
+        **{
+            f"localised shear mode w={w}": ref
+            + np.c_[w * d[:, 2] / s * np.exp(-(d**2).sum(1) / (2 * s * s)), np.zeros((len(ref), 2))]
+            for w in (6, 8)
+        },
         "10 random interior kicks 0.9 h": kicks,
         "surface face folded in-plane 1.3 h": push(nid(10, 10, 0), nid(11, 10, 0), 1.3),
     }
@@ -143,10 +169,12 @@ def bench_repair():
             continue
         dt = time.perf_counter() - t
         cert_ok = bool(np.all(q.certify_valid(Y, H) == 1))
-        print(f"{name:38s} invalid {rep.invalid_before:3d} -> {rep.invalid_after}, certified {cert_ok}, "
-              f"moved {rep.n_nodes_moved:4d}, max|dx| {rep.max_displacement_mm:.2f} mm, min sJ "
-              f"{rep.min_scaled_jacobian_before:+.3f} -> {rep.min_scaled_jacobian_after:.3f}, "
-              f"sliding {rep.sliding}, {dt:.2f} s")
+        print(
+            f"{name:38s} invalid {rep.invalid_before:3d} -> {rep.invalid_after}, certified {cert_ok}, "
+            f"moved {rep.n_nodes_moved:4d}, max|dx| {rep.max_displacement_mm:.2f} mm, min sJ "
+            f"{rep.min_scaled_jacobian_before:+.3f} -> {rep.min_scaled_jacobian_after:.3f}, "
+            f"sliding {rep.sliding}, {dt:.2f} s"
+        )
 
 
 def bench_repair_large(n=80):
@@ -160,9 +188,11 @@ def bench_repair_large(n=80):
     t = time.perf_counter()
     Y, rep = r.untangle(X, H, X0, context=ctx)
     t_rep = time.perf_counter() - t
-    print(f"\n== repair on a {n}^3 block ({len(H)} hexes) ==\nprepare_untangle (once per cohort): {t_ctx:.2f} s; "
-          f"interior push 1.6 h: invalid {rep.invalid_before} -> {rep.invalid_after}, {t_rep:.2f} s per sample "
-          f"(whole-mesh check + certificate + local repair)")
+    print(
+        f"\n== repair on a {n}^3 block ({len(H)} hexes) ==\nprepare_untangle (once per cohort): {t_ctx:.2f} s; "
+        f"interior push 1.6 h: invalid {rep.invalid_before} -> {rep.invalid_after}, {t_rep:.2f} s per sample "
+        f"(whole-mesh check + certificate + local repair)"
+    )
 
 
 if __name__ == "__main__":

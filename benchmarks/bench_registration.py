@@ -1,4 +1,4 @@
-"""Benchmark spinecohort.registration: BCPD time/iterations/final distance at 2k, 10k, 30k surface points.
+"""Benchmark spinecohort.mesh.registration: BCPD time/iterations/final distance at 2k, 10k, 30k surface points.
 
 Run: python benchmarks/bench_registration.py   (about 2-4 minutes on 2 cores)
 Case: a vertebral-body-sized superellipsoid (40 x 30 x 24 mm) as source; the target is the same shape
@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from spinecohort import registration as reg
-from spinecohort.surfaces import superellipsoid
+from spinecohort.cohort.surfaces import superellipsoid
 
 
 def body(n_points):
@@ -42,8 +42,10 @@ def main():
     print(f"  10k points: {time.perf_counter() - t0:.2f} s, {r.iterations} iterations, rms {r.rms:.4f} mm")
 
     print("non-rigid BCPD (beta 2, lam 8, w 0.1, K 70, max_iter 200, tol 1e-4):")
-    print(f"  {'points':>7} {'radius':>6} {'M_ds':>6} {'N_ds':>6} {'time s':>7} {'iters':>5} "
-          f"{'start mm':>8} {'final mm':>8} {'pts/s':>8}")
+    print(
+        f"  {'points':>7} {'radius':>6} {'M_ds':>6} {'N_ds':>6} {'time s':>7} {'iters':>5} "
+        f"{'start mm':>8} {'final mm':>8} {'pts/s':>8}"
+    )
     for n, radius in ((2_000, 0.0), (10_000, 1.3), (30_000, 1.3)):
         src, _ = body(n)
         tv, tf = body(int(n * 1.3))
@@ -54,15 +56,21 @@ def main():
         t0 = time.perf_counter()
         res = reg.nonrigid_register(src, target, tf, downsample_radius=radius, max_iter=200, tol=1e-4)
         dt = time.perf_counter() - t0
-        print(f"  {len(src):>7} {radius:>6.1f} {m_ds:>6} {n_ds:>6} {dt:>7.1f} {res.iterations:>5} "
-              f"{start:>8.3f} {res.mean_distance:>8.4f} {len(src) / dt:>8.0f}")
+        print(
+            f"  {len(src):>7} {radius:>6.1f} {m_ds:>6} {n_ds:>6} {dt:>7.1f} {res.iterations:>5} "
+            f"{start:>8.3f} {res.mean_distance:>8.4f} {len(src) / dt:>8.0f}"
+        )
     print("multilayer (bound 0.04 mm) on the 30k case:")
     t0 = time.perf_counter()
     res = reg.multilayer_register(src, target, tf, bound=0.04, downsample_radius=1.3, max_iter=200, tol=1e-4)
-    print(f"  {time.perf_counter() - t0:.1f} s, {res.iterations} iterations, layers "
-          + ", ".join(f"beta {h['beta']:g}: {h['mean_distance']:.4f} mm" for h in res.history))
-    print("memory: correspondence blocks of <= 4e6 float64 (32 MB) plus the M_ds x K Nystrom basis; "
-          "never an M x N or M x M matrix.")
+    print(
+        f"  {time.perf_counter() - t0:.1f} s, {res.iterations} iterations, layers "
+        + ", ".join(f"beta {h['beta']:g}: {h['mean_distance']:.4f} mm" for h in res.history)
+    )
+    print(
+        "memory: correspondence blocks of <= 4e6 float64 (32 MB) plus the M_ds x K Nystrom basis; "
+        "never an M x N or M x M matrix."
+    )
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from spinecohort.release import build_release, plan_parts
-from spinecohort.store import create_store, n_shards, write_shard
+from spinecohort.store.zarr_store import create_store, n_shards, write_shard
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_STORE_GB = 8.7
@@ -35,10 +35,14 @@ def synthetic_store(path: Path, n_models: int, shard_models: int = 343, n_nodes:
     create_store(path, n_nodes, n_nodes, n_modes=n_modes, shard_models=shard_models)
     rng = np.random.default_rng(0)
     base = np.cumsum(rng.normal(0, 0.5, (n_nodes, 3)), axis=0).astype(np.float32)
-    total = 7 ** n_modes
+    total = 7**n_modes
     for s in range(n_shards(total, shard_models)):
         m = min(shard_models, total - s * shard_models)
-        pts = base + rng.normal(0, 2.0, (m, 1, 3)).astype(np.float32) + rng.normal(0, 0.05, (m, n_nodes, 3)).astype(np.float32)
+        pts = (
+            base
+            + rng.normal(0, 2.0, (m, 1, 3)).astype(np.float32)
+            + rng.normal(0, 0.05, (m, n_nodes, 3)).astype(np.float32)
+        )
         write_shard(path, s, pts, pts, verify=False)
     return path
 
@@ -59,30 +63,49 @@ def main() -> None:
             print(f"synthetic store: {args.models} models in {time.perf_counter() - t0:.1f} s")
         parts = plan_parts(store, int(meta["part_size_mb"] * 1e6))
         mb = sum(p.nbytes for p in parts) / 1e6
-        print(f"store {store}: {mb:.0f} MB in {sum(len(p.members) for p in parts)} files -> {len(parts)} parts "
-              f"of <= {meta['part_size_mb']} MB")
+        print(
+            f"store {store}: {mb:.0f} MB in {sum(len(p.members) for p in parts)} files -> {len(parts)} parts "
+            f"of <= {meta['part_size_mb']} MB"
+        )
         import zarr
+
         z = zarr.open_group(str(store), mode="r")
-        counts = {"n_models": int(z.attrs["n_models"]), "shard_models": int(z.attrs["shard_models"]),
-                  "levels": list(z.attrs["levels"]), "n_tri_nodes": 0, "n_hex_nodes": 0, "n_patients": 0,
-                  "n_personalized": 0, "n_modes": int(z.attrs["n_modes"]), "hex_type": "C3D8", "mean_model_id": None,
-                  "n_hex_elements": 0, "n_nodes_stored": 0, "error_bound_mm": 0.0}
-        rep = build_release(tmp / "release", store=store, files={}, meta=meta, counts=counts,
-                            processes=args.processes)
+        counts = {
+            "n_models": int(z.attrs["n_models"]),
+            "shard_models": int(z.attrs["shard_models"]),
+            "levels": list(z.attrs["levels"]),
+            "n_tri_nodes": 0,
+            "n_hex_nodes": 0,
+            "n_patients": 0,
+            "n_personalized": 0,
+            "n_modes": int(z.attrs["n_modes"]),
+            "hex_type": "C3D8",
+            "mean_model_id": None,
+            "n_hex_elements": 0,
+            "n_nodes_stored": 0,
+            "error_bound_mm": 0.0,
+        }
+        rep = build_release(tmp / "release", store=store, files={}, meta=meta, counts=counts, processes=args.processes)
         total = rep["seconds"]
         print(f"archives + payload: {rep['seconds_payload']:6.1f} s  {mb / rep['seconds_payload']:7.0f} MB/s")
         print(f"bagit (sha256):     {rep['seconds_bag']:6.1f} s  {mb / rep['seconds_bag']:7.0f} MB/s")
-        print(f"verify (bagit + unpack + check_store): {rep['seconds_verify']:6.1f} s  "
-              f"{mb / rep['seconds_verify']:7.0f} MB/s")
-        print(f"whole release: {total:.1f} s, {mb / total:.0f} MB/s -> default store ({DEFAULT_STORE_GB} GB): "
-              f"~{DEFAULT_STORE_GB * 1e3 / (mb / total) / 60:.1f} min")
+        print(
+            f"verify (bagit + unpack + check_store): {rep['seconds_verify']:6.1f} s  "
+            f"{mb / rep['seconds_verify']:7.0f} MB/s"
+        )
+        print(
+            f"whole release: {total:.1f} s, {mb / total:.0f} MB/s -> default store ({DEFAULT_STORE_GB} GB): "
+            f"~{DEFAULT_STORE_GB * 1e3 / (mb / total) / 60:.1f} min"
+        )
         sample = (tmp / "release" / "data" / parts[0].name).open("rb").read(64 << 20)
         for name, fn in (("zlib-6", lambda b: zlib.compress(b, 6)), ("xz-6", lambda b: lzma.compress(b, preset=6))):
             t0 = time.perf_counter()
             n = len(fn(sample))
             dt = time.perf_counter() - t0
-            print(f"{name} on {len(sample) / 1e6:.0f} MB of part 1: size ratio {n / len(sample):.3f}, "
-                  f"{len(sample) / 1e6 / dt:.1f} MB/s (8.7 GB: ~{DEFAULT_STORE_GB * 1e3 / (len(sample) / 1e6 / dt) / 60:.0f} min)")
+            print(
+                f"{name} on {len(sample) / 1e6:.0f} MB of part 1: size ratio {n / len(sample):.3f}, "
+                f"{len(sample) / 1e6 / dt:.1f} MB/s (8.7 GB: ~{DEFAULT_STORE_GB * 1e3 / (len(sample) / 1e6 / dt) / 60:.0f} min)"
+            )
         shutil.rmtree(tmp / "release")
 
 

@@ -24,10 +24,10 @@ import yaml
 
 
 def model_points(results: Path, model: str, grid: dict, template) -> np.ndarray:
-    from spinecohort.abaqus import read_inp_nodes
-    from spinecohort.hex_ssm import HexSSM
-    from spinecohort.models import hex_points_checked, parse_model_id
-    from spinecohort.store import weights_of
+    from spinecohort.fe.abaqus import read_inp_nodes
+    from spinecohort.fe.models import hex_points_checked, parse_model_id
+    from spinecohort.mesh.hex_ssm import HexSSM
+    from spinecohort.store.zarr_store import weights_of
 
     deck = results / "models" / f"{model}.inp"
     if deck.exists():
@@ -49,9 +49,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(asctime)s %(message)s")
 
-    from spinecohort.fe_export import materials_from_config
-    from spinecohort.hex_template import HexTemplate
-    from spinecohort.rom import all_effect, solve_model, validate, validation_figure
+    from spinecohort.fe.export import materials_from_config
+    from spinecohort.mesh.template import HexTemplate
+    from spinecohort.rom.analysis import all_effect, solve_model, validate, validation_figure
 
     cfg = yaml.safe_load(Path(args.config).read_text())
     rom = dict(cfg["rom"])
@@ -73,15 +73,28 @@ def main(argv=None) -> int:
     validation_figure(val, out / "validation.png", title=model)
     runs = table.drop_duplicates(["mode", "unit", "variant", "load_case"])
     print("\nper ccx run (s, peak RSS MB):")
-    print(runs.groupby(["mode", "unit"]).agg(runs=("solve_s", "size"), total_s=("solve_s", "sum"),
-                                            max_s=("solve_s", "max"), peak_mb=("peak_rss_mb", "max")).to_string())
-    print(f"\nwall time {wall:.1f} s with {rom['threads']} parallel ccx runs; sum of solve times "
-          f"{runs['solve_s'].sum():.1f} s; peak RSS of one ccx run {runs['peak_rss_mb'].max():.0f} MB")
+    print(
+        runs.groupby(["mode", "unit"])
+        .agg(
+            runs=("solve_s", "size"),
+            total_s=("solve_s", "sum"),
+            max_s=("solve_s", "max"),
+            peak_mb=("peak_rss_mb", "max"),
+        )
+        .to_string()
+    )
+    print(
+        f"\nwall time {wall:.1f} s with {rom['threads']} parallel ccx runs; sum of solve times "
+        f"{runs['solve_s'].sum():.1f} s; peak RSS of one ccx run {runs['peak_rss_mb'].max():.0f} MB"
+    )
     print("\nROM (deg):")
     print(table.pivot_table(index=["mode", "segment"], columns="load_case", values="rom_deg").round(2).to_string())
     print("\nvalidation:")
-    print(val[["segment", "motion", "side", "mode", "model_deg", "accept_low", "accept_high", "in_range",
-               "distance_deg"]].to_string())
+    print(
+        val[
+            ["segment", "motion", "side", "mode", "model_deg", "accept_low", "accept_high", "in_range", "distance_deg"]
+        ].to_string()
+    )
     print(f"\nwritten to {out}")
     return 0
 

@@ -25,9 +25,9 @@ import numpy as np
 import zarr
 
 from spinecohort import store as S
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import procrustes_align
-from spinecohort.synthetic import generate_cohort
+from spinecohort.cohort.synthetic import generate_cohort
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import procrustes_align
 
 warnings.filterwarnings("ignore", message="Numcodecs codecs are not in the Zarr")
 
@@ -36,8 +36,9 @@ def shard_bytes(path: Path, shard: int, array: str) -> int:
     return (path / array / "c" / str(shard) / "0" / "0").stat().st_size
 
 
-def bench_encoding(shapes: np.ndarray, shard: int, shard_models: int, encoding: str, base: Path,
-                   residual_of: np.ndarray | None = None) -> dict:
+def bench_encoding(
+    shapes: np.ndarray, shard: int, shard_models: int, encoding: str, base: Path, residual_of: np.ndarray | None = None
+) -> dict:
     m, n, _ = shapes.shape
     path = base / f"{encoding}{'-residual' if residual_of is not None else ''}.zarr"
     S.create_store(path, n, n, shard_models=shard_models, encoding=encoding)
@@ -59,8 +60,13 @@ def bench_encoding(shapes: np.ndarray, shard: int, shard_models: int, encoding: 
         root["hex/points"][int(i)]
     t_one = (time.perf_counter() - t0) / len(picks)
     nbytes = shard_bytes(path, shard, "tri/points") + shard_bytes(path, shard, "hex/points")
-    return {"bytes_per_node": nbytes / (2 * m * n), "max_err_mm": err, "write_models_s": m / t_write,
-            "read_models_s": m / t_read, "random_read_models_s": 1 / t_one}
+    return {
+        "bytes_per_node": nbytes / (2 * m * n),
+        "max_err_mm": err,
+        "write_models_s": m / t_write,
+        "read_models_s": m / t_read,
+        "random_read_models_s": 1 / t_one,
+    }
 
 
 def main() -> None:
@@ -77,10 +83,14 @@ def main() -> None:
         start, stop = S.shard_range(a.shard, a.shard_models, S.n_models())
         shapes = ssm.sample(S.weights_of(np.arange(start, stop)))
         m, n, _ = shapes.shape
-        print(f"\n{res}: {m} models x {n} nodes, |x| <= {np.abs(shapes).max():.0f} mm "
-              f"(SSM built in {time.perf_counter() - t0:.0f} s)")
-        print(f"{'encoding':<22s} {'B/node':>7s} {'max err mm':>11s} {'write models/s':>15s} "
-              f"{'read models/s':>14s} {'1-model reads/s':>16s}")
+        print(
+            f"\n{res}: {m} models x {n} nodes, |x| <= {np.abs(shapes).max():.0f} mm "
+            f"(SSM built in {time.perf_counter() - t0:.0f} s)"
+        )
+        print(
+            f"{'encoding':<22s} {'B/node':>7s} {'max err mm':>11s} {'write models/s':>15s} "
+            f"{'read models/s':>14s} {'1-model reads/s':>16s}"
+        )
         rows = {}
         with tempfile.TemporaryDirectory() as d:
             runs = [(e, None) for e in a.encodings]
@@ -90,12 +100,16 @@ def main() -> None:
                 r = bench_encoding(shapes, a.shard, a.shard_models, enc, Path(d), resid)
                 label = enc + ("+mean-residual" if resid is not None else "")
                 rows[label] = r
-                print(f"{label:<22s} {r['bytes_per_node']:7.2f} {r['max_err_mm']:11.2e} "
-                      f"{r['write_models_s']:15.1f} {r['read_models_s']:14.1f} {r['random_read_models_s']:16.1f}")
+                print(
+                    f"{label:<22s} {r['bytes_per_node']:7.2f} {r['max_err_mm']:11.2e} "
+                    f"{r['write_models_s']:15.1f} {r['read_models_s']:14.1f} {r['random_read_models_s']:16.1f}"
+                )
         if "float32" in rows and "int32-delta" in rows:
             ratio = rows["float32"]["bytes_per_node"] / rows["int32-delta"]["bytes_per_node"]
-            print(f"  int32-delta is {ratio:.2f}x smaller than float32+zstd; "
-                  f"target <= 5 B/node {'met' if rows['int32-delta']['bytes_per_node'] <= 5 else 'MISSED'}")
+            print(
+                f"  int32-delta is {ratio:.2f}x smaller than float32+zstd; "
+                f"target <= 5 B/node {'met' if rows['int32-delta']['bytes_per_node'] <= 5 else 'MISSED'}"
+            )
 
 
 if __name__ == "__main__":

@@ -16,16 +16,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.abaqus import write_inp
-from spinecohort.fe_export import fe_model
-from spinecohort.hex_ssm import inverted_over_grid, transfer_fields
-from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, build_template
-from spinecohort.morph import MorphParameters, morph_template
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import procrustes_align
-from spinecohort.quality import min_scaled_jacobian_nb, scaled_jacobian
-from spinecohort.store import grid_weights
-from spinecohort.synthetic import generate_cohort
+from spinecohort.cohort.synthetic import generate_cohort
+from spinecohort.fe.abaqus import write_inp
+from spinecohort.fe.export import fe_model
+from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
+from spinecohort.mesh.morph import MorphParameters, morph_template
+from spinecohort.mesh.quality import min_scaled_jacobian_nb, scaled_jacobian
+from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import procrustes_align
+from spinecohort.store.zarr_store import grid_weights
 
 
 def main() -> None:
@@ -39,15 +39,29 @@ def main() -> None:
     ssm = build_ssm(procrustes_align(c.vertices).aligned)
     t0 = time.perf_counter()
     tpl = build_template(ssm.mean, c.faces, c.landmarks, TEMPLATE_RESOLUTIONS[a.template])
-    print(f"template ({a.template}): {tpl.n_nodes} nodes ({tpl.n_hex_nodes} hex), {len(tpl.hexes)} hexes, "
-          f"{len(tpl.tris)} S3, {len(tpl.ligaments)} ligaments; built in {time.perf_counter() - t0:.2f} s")
+    print(
+        f"template ({a.template}): {tpl.n_nodes} nodes ({tpl.n_hex_nodes} hex), {len(tpl.hexes)} hexes, "
+        f"{len(tpl.tris)} S3, {len(tpl.ligaments)} ligaments; built in {time.perf_counter() - t0:.2f} s"
+    )
     t0 = time.perf_counter()
-    nodes, rep = morph_template(tpl, ssm.mean, c.faces, c.landmarks,
-                                MorphParameters(max_iter=300, max_layers=3))
+    nodes, rep = morph_template(tpl, ssm.mean, c.faces, c.landmarks, MorphParameters(max_iter=300, max_layers=3))
     print(f"morph: {time.perf_counter() - t0:.1f} s")
     with pd.option_context("display.width", 200):
-        print(rep[["part", "seconds", "distance_before_mm", "distance_registered_mm", "distance_final_mean_mm",
-                   "layers", "iterations"]].round(4).to_string(index=False))
+        print(
+            rep[
+                [
+                    "part",
+                    "seconds",
+                    "distance_before_mm",
+                    "distance_registered_mm",
+                    "distance_final_mean_mm",
+                    "layers",
+                    "iterations",
+                ]
+            ]
+            .round(4)
+            .to_string(index=False)
+        )
     sj = scaled_jacobian(nodes, tpl.hexes)
     print(f"morphed mean: min scaled Jacobian {sj.min():.3f}, inverted {int((sj <= 0).sum())}")
     w = grid_weights(a.grid_modes, [-3, -2, -1, 0, 1, 2, 3]).astype(float)
@@ -56,10 +70,13 @@ def main() -> None:
         t0 = time.perf_counter()
         stats = inverted_over_grid(h, tpl.hexes, w)
         dt = time.perf_counter() - t0
-        print(f"{method:8s}: inverted elements {100 * stats['inverted_element_fraction']:.4f} %, models with any "
-              f"{stats['models_with_inverted']} of {len(w)}; fused sample+check {len(w) * len(tpl.hexes) / dt / 1e6:.2f} "
-              f"M elements/s")
+        print(
+            f"{method:8s}: inverted elements {100 * stats['inverted_element_fraction']:.4f} %, models with any "
+            f"{stats['models_with_inverted']} of {len(w)}; fused sample+check {len(w) * len(tpl.hexes) / dt / 1e6:.2f} "
+            f"M elements/s"
+        )
     import pyvista as pv
+
     grid = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: tpl.hexes}, nodes)
     reps = 20
     t0 = time.perf_counter()
@@ -72,8 +89,10 @@ def main() -> None:
     for _ in range(reps):
         min_scaled_jacobian_nb(x, tpl.hexes)
     t_nb = (time.perf_counter() - t0) / reps
-    print(f"scaled Jacobian: numba {len(tpl.hexes) / t_nb / 1e6:.2f} M/s, vtkMeshQuality {len(tpl.hexes) / t_vtk / 1e6:.2f} "
-          f"M/s, ratio {t_vtk / t_nb:.2f}")
+    print(
+        f"scaled Jacobian: numba {len(tpl.hexes) / t_nb / 1e6:.2f} M/s, vtkMeshQuality {len(tpl.hexes) / t_vtk / 1e6:.2f} "
+        f"M/s, ratio {t_vtk / t_nb:.2f}"
+    )
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         path = write_inp(fe_model(tpl, nodes), Path(d) / "Mean_Model (Template).inp")

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install the Debian packages spinecohort needs outside Python (idempotent).
-#   calculix-ccx : the CalculiX solver `ccx` (2.20 on Debian 12), used by spinecohort.calculix to
+#   calculix-ccx : the CalculiX solver `ccx` (2.20 on Debian 12), used by spinecohort.fe.calculix to
 #                  check and run the exported .inp decks.
 # Usage: sudo scripts/install_system_deps.sh   (does nothing but report when not root)
 set -euo pipefail

@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, build_template
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import procrustes_align
-from spinecohort.synthetic import generate_cohort
+from spinecohort.cohort.synthetic import generate_cohort
+from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import procrustes_align
 
 
 @pytest.fixture(scope="session")
@@ -41,7 +41,11 @@ def test_run(tmp_path_factory):
     root = Path(__file__).resolve().parents[1]
     work = tmp_path_factory.mktemp("dag")
     shutil.copytree(root / ".test" / "config", work / "config")
-    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "--directory", str(work),
-                           "-j2"], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "--directory", str(work), "-j2"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return work

@@ -1,5 +1,5 @@
-"""Tests of spinecohort.abaqus (deck writing, template substitution, meshio/pyvista read-back) and
-spinecohort.calculix (strict ccx wrapper), on a hand-built 10 x 10 x 60 mm hex column."""
+"""Tests of spinecohort.fe.abaqus (deck writing, template substitution, meshio/pyvista read-back) and
+spinecohort.fe.calculix (strict ccx wrapper), on a hand-built 10 x 10 x 60 mm hex column."""
 
 import re
 import shutil
@@ -7,10 +7,24 @@ import shutil
 import numpy as np
 import pytest
 
-from spinecohort.abaqus import (FEModel, InpTemplate, LinearElastic, MooneyRivlin, Section, UserMaterial,
-                                format_id_list, model_to_inp_text, parse_template, read_inp, read_inp_nodes,
-                                substitute_coordinates, validate_model, write_inp, write_vtu)
-from spinecohort.calculix import CalculixError, check_input, find_ccx, parse_dat, run_ccx
+from spinecohort.fe.abaqus import (
+    FEModel,
+    InpTemplate,
+    LinearElastic,
+    MooneyRivlin,
+    Section,
+    UserMaterial,
+    format_id_list,
+    model_to_inp_text,
+    parse_template,
+    read_inp,
+    read_inp_nodes,
+    substitute_coordinates,
+    validate_model,
+    write_inp,
+    write_vtu,
+)
+from spinecohort.fe.calculix import CalculixError, check_input, find_ccx, parse_dat, run_ccx
 
 HAS_CCX = shutil.which("ccx") is not None
 needs_ccx = pytest.mark.skipif(not HAS_CCX, reason="CalculiX 'ccx' not installed (Debian package calculix-ccx)")
@@ -28,8 +42,18 @@ def hex_column(nx=3, ny=3, nz=6, side=SIDE_MM, length=LENGTH_MM):
         return (k * (ny + 1) + j) * (nx + 1) + i
 
     k, j, i = (a.ravel() for a in np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij"))
-    hexes = np.column_stack([nid(i, j, k), nid(i + 1, j, k), nid(i + 1, j + 1, k), nid(i, j + 1, k),
-                             nid(i, j, k + 1), nid(i + 1, j, k + 1), nid(i + 1, j + 1, k + 1), nid(i, j + 1, k + 1)])
+    hexes = np.column_stack(
+        [
+            nid(i, j, k),
+            nid(i + 1, j, k),
+            nid(i + 1, j + 1, k),
+            nid(i, j + 1, k),
+            nid(i, j, k + 1),
+            nid(i + 1, j, k + 1),
+            nid(i + 1, j + 1, k + 1),
+            nid(i, j + 1, k + 1),
+        ]
+    )
     return nodes, hexes
 
 
@@ -51,11 +75,17 @@ def column_model(etype="C3D8I"):
         element_blocks={"COLUMN": (etype, hexes), "ENDPLATE": ("S3", tris), "LIG": ("SPRINGA", ligaments)},
         node_sets={"BASE": base, "TOP": top},
         element_sets={"LOWER": lower, "UPPER": upper},
-        materials=[LinearElastic("BONE", 12000.0, 0.3), MooneyRivlin("DISC", 0.3, 0.1, 0.05),
-                   UserMaterial("ELASTIC_FIBER_AF", (0.35, 0.0, 1.0, 0.0, 0.5, 1.0, 1.0, 0.0, 0.5, 1.0))],
-        sections=[Section("LOWER", "BONE"), Section("UPPER", "DISC"),
-                  Section("ENDPLATE", "BONE", thickness_mm=0.5),
-                  Section("LIG", spring_force_elongation=((0.0, -10.0), (0.0, 0.0), (100.0, 1.0), (1000.0, 10.0)))],
+        materials=[
+            LinearElastic("BONE", 12000.0, 0.3),
+            MooneyRivlin("DISC", 0.3, 0.1, 0.05),
+            UserMaterial("ELASTIC_FIBER_AF", (0.35, 0.0, 1.0, 0.0, 0.5, 1.0, 1.0, 0.0, 0.5, 1.0)),
+        ],
+        sections=[
+            Section("LOWER", "BONE"),
+            Section("UPPER", "DISC"),
+            Section("ENDPLATE", "BONE", thickness_mm=0.5),
+            Section("LIG", spring_force_elongation=((0.0, -10.0), (0.0, 0.0), (100.0, 1.0), (1000.0, 10.0))),
+        ],
         heading="test column",
     )
 
@@ -64,11 +94,17 @@ def elastic_column(nz=6):
     """The column all in BONE (E = 12 GPa, nu = 0.3), C3D8I hexes only, nz elements along its length."""
     nodes, hexes = hex_column(nz=nz)
     sets = {"BASE": np.flatnonzero(nodes[:, 2] == 0.0), "TOP": np.flatnonzero(nodes[:, 2] == LENGTH_MM)}
-    return FEModel(nodes, {"COLUMN": ("C3D8I", hexes)}, node_sets=sets,
-                   materials=[LinearElastic("BONE", 12000.0, 0.3)], sections=[Section("COLUMN", "BONE")])
+    return FEModel(
+        nodes,
+        {"COLUMN": ("C3D8I", hexes)},
+        node_sets=sets,
+        materials=[LinearElastic("BONE", 12000.0, 0.3)],
+        sections=[Section("COLUMN", "BONE")],
+    )
 
 
 # --- writing and reading back -----------------------------------------------------------------------
+
 
 def test_meshio_round_trip_counts_sets_and_coordinates(tmp_path):
     model = column_model()
@@ -99,7 +135,10 @@ def test_deck_layout_one_node_block_ids_compact_sixteen_per_line():
     assert "*ELEMENT, TYPE=S3, ELSET=ENDPLATE\n55, " in text
     assert "*ELEMENT, TYPE=SPRINGA, ELSET=LIG\n73, 1, 97\n74, 16, 112\n*NSET" in text
     assert format_id_list(np.arange(1, 36)).splitlines() == [
-        ", ".join(map(str, range(1, 17))), ", ".join(map(str, range(17, 33))), "33, 34, 35"]
+        ", ".join(map(str, range(1, 17))),
+        ", ".join(map(str, range(17, 33))),
+        "33, 34, 35",
+    ]
     # SPRINGA: empty first data line, then the (force, elongation) table
     assert "*SPRING, ELSET=LIG, NONLINEAR\n\n0.0, -10.0\n0.0, 0.0\n100.0, 1.0\n1000.0, 10.0\n" in text
     # 10 user constants -> 8 + 2 per line
@@ -126,17 +165,20 @@ def test_write_vtu_hex_volume_and_pyvista_read(tmp_path):
     np.testing.assert_array_equal(grid.cell_data["element_id"], np.arange(1, 55))
 
 
-@pytest.mark.parametrize("mutate, message", [
-    (lambda m: m.element_blocks.update(SKIN=("M3D3", m.element_blocks["ENDPLATE"][1])), "M3D3"),
-    (lambda m: m.element_blocks.update(SKIN=("SFM3D3", m.element_blocks["ENDPLATE"][1])), "SFM3D3"),
-    (lambda m: m.node_sets.update(BAD=np.array([0, 112])), "outside 0..111"),
-    (lambda m: m.node_sets.update({"has space": np.array([0])}), "not a valid Abaqus name"),
-    (lambda m: m.sections.append(Section("COLUMN", "STEEL")), "unknown material 'STEEL'"),
-    (lambda m: m.element_sets.update(COLUMN=np.array([0])), "name of an element block"),
-    (lambda m: m.sections.__setitem__(2, Section("ENDPLATE", "BONE")), "thickness_mm"),
-    # ccx silently replaces D1 = 0 by a default (0.125 /MPa seen in ccx 2.20): refuse it
-    (lambda m: m.materials.__setitem__(1, MooneyRivlin("DISC", 0.3, 0.1, 0.0)), "D1 must be > 0"),
-])
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda m: m.element_blocks.update(SKIN=("M3D3", m.element_blocks["ENDPLATE"][1])), "M3D3"),
+        (lambda m: m.element_blocks.update(SKIN=("SFM3D3", m.element_blocks["ENDPLATE"][1])), "SFM3D3"),
+        (lambda m: m.node_sets.update(BAD=np.array([0, 112])), "outside 0..111"),
+        (lambda m: m.node_sets.update({"has space": np.array([0])}), "not a valid Abaqus name"),
+        (lambda m: m.sections.append(Section("COLUMN", "STEEL")), "unknown material 'STEEL'"),
+        (lambda m: m.element_sets.update(COLUMN=np.array([0])), "name of an element block"),
+        (lambda m: m.sections.__setitem__(2, Section("ENDPLATE", "BONE")), "thickness_mm"),
+        # ccx silently replaces D1 = 0 by a default (0.125 /MPa seen in ccx 2.20): refuse it
+        (lambda m: m.materials.__setitem__(1, MooneyRivlin("DISC", 0.3, 0.1, 0.0)), "D1 must be > 0"),
+    ],
+)
 def test_invalid_models_raise_value_error(mutate, message):
     model = column_model()
     mutate(model)
@@ -145,6 +187,7 @@ def test_invalid_models_raise_value_error(mutate, message):
 
 
 # --- template substitution --------------------------------------------------------------------------
+
 
 def test_substitute_changes_only_node_lines(tmp_path):
     model = column_model()
@@ -158,7 +201,7 @@ def test_substitute_changes_only_node_lines(tmp_path):
     changed = [i for i, (a, b) in enumerate(zip(old, new)) if a != b]
     assert changed and min(changed) >= first_node and max(changed) < first_node + 112
     # node ids are kept, coordinates reproduced to the written precision (6 decimals: <= 5e-7 mm)
-    assert [ln.split(",")[0] for ln in new[first_node:first_node + 112]] == [str(i) for i in range(1, 113)]
+    assert [ln.split(",")[0] for ln in new[first_node : first_node + 112]] == [str(i) for i in range(1, 113)]
     ids, pts = read_inp_nodes(tmp_path / "model_00001.inp")
     np.testing.assert_allclose(pts, moved, atol=5e-7)
     assert out == (tmp_path / "model_00001.inp").read_text()
@@ -179,15 +222,20 @@ def test_substitute_original_coordinates_is_byte_identical_and_accepts_text_and_
 
 # --- CalculiX ---------------------------------------------------------------------------------------
 
+
 def test_parse_dat_reads_node_print_blocks():
-    dat = ("\n displacements (vx,vy,vz) for set TOP and time  0.1000000E+01\n\n"
-           "       193  7.183913E-01 -1.299122E-04  8.887360E-02\n"
-           "       194  7.179766E-01  8.293880E-06  2.940252E-02\n\n"
-           " forces (fx,fy,fz) for set BASE and time  0.5000000E+00\n\n"
-           "         1 -1.0E+01  0.0E+00  2.5E+00\n")
+    dat = (
+        "\n displacements (vx,vy,vz) for set TOP and time  0.1000000E+01\n\n"
+        "       193  7.183913E-01 -1.299122E-04  8.887360E-02\n"
+        "       194  7.179766E-01  8.293880E-06  2.940252E-02\n\n"
+        " forces (fx,fy,fz) for set BASE and time  0.5000000E+00\n\n"
+        "         1 -1.0E+01  0.0E+00  2.5E+00\n"
+    )
     blocks = parse_dat(dat)
     assert [(b.quantity, b.node_set, b.time) for b in blocks] == [
-        ("displacements (vx,vy,vz)", "TOP", 1.0), ("forces (fx,fy,fz)", "BASE", 0.5)]
+        ("displacements (vx,vy,vz)", "TOP", 1.0),
+        ("forces (fx,fy,fz)", "BASE", 0.5),
+    ]
     np.testing.assert_array_equal(blocks[0].node_ids, [193, 194])
     assert blocks[0].values[1, 2] == 2.940252e-02 and blocks[1].values.tolist() == [[-10.0, 0.0, 2.5]]
 
@@ -259,7 +307,7 @@ def test_run_ccx_raises_on_unknown_keyword_that_ccx_only_warns_about(tmp_path):
 
 
 def test_orientation_is_written_and_checked():
-    from spinecohort.abaqus import Orientation
+    from spinecohort.fe.abaqus import Orientation
 
     model = column_model()
     model.orientations.append(Orientation("OR_AF", (5.0, 5.0, 0.0), (5.0, 5.0, 60.0)))
@@ -275,11 +323,12 @@ def test_orientation_is_written_and_checked():
 def test_data_check_replaces_the_fibre_law_by_its_ground_substance():
     # ccx 2.20 segfaults on *NO ANALYSIS with an ELASTIC_FIBER element: the check uses Neo-Hooke C10, D1
     # (D1 = 0 -> 1 / (20 C10), what the fibre law itself substitutes: 1 / (20 * 0.35) = 0.142857...)
-    from spinecohort.calculix import fibre_ground_substance
+    from spinecohort.fe.calculix import fibre_ground_substance
 
     text = model_to_inp_text(column_model())
     out = fibre_ground_substance(text)
     assert "*USER MATERIAL" not in out
     assert "*MATERIAL, NAME=ELASTIC_FIBER_AF\n*HYPERELASTIC, NEO HOOKE\n0.35, 0.14285714285714285\n" in out
-    assert out.replace(out[out.index("*MATERIAL, NAME=ELASTIC_FIBER_AF"):], "") == \
-        text.replace(text[text.index("*MATERIAL, NAME=ELASTIC_FIBER_AF"):], "")
+    assert out.replace(out[out.index("*MATERIAL, NAME=ELASTIC_FIBER_AF") :], "") == text.replace(
+        text[text.index("*MATERIAL, NAME=ELASTIC_FIBER_AF") :], ""
+    )

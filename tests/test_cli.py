@@ -14,7 +14,8 @@ def test_generate_check_and_info(tmp_path, capsys):
 
 def test_input_errors_are_one_line_messages(tmp_path):
     (tmp_path / "a.stl").write_bytes(b"")
-    proc = subprocess.run([sys.executable, "-m", "spinecohort.cli", "check-cohort", str(tmp_path)],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "spinecohort.cli", "check-cohort", str(tmp_path)], capture_output=True, text=True
+    )
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr

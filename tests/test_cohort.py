@@ -6,8 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from spinecohort.cohort import CohortInputError, load_cohort, load_cohort_npz, save_cohort, write_cohort_folder
-from spinecohort.stl_io import write_stl
+from spinecohort.cohort.loading import CohortInputError, load_cohort, load_cohort_npz, save_cohort, write_cohort_folder
+from spinecohort.cohort.stl_io import write_stl
 
 
 @pytest.fixture()
@@ -84,7 +84,9 @@ def test_sheet_ids_must_match_the_files(folder):
     t = pd.read_csv(folder / "patients.csv")
     t.loc[1, "ID"] = "P99"
     t.to_csv(folder / "patients.csv", index=False)
-    with pytest.raises(CohortInputError, match=r"patients\.csv: patient IDs do not match .*no row for P02.*no STL for P99"):
+    with pytest.raises(
+        CohortInputError, match=r"patients\.csv: patient IDs do not match .*no row for P02.*no STL for P99"
+    ):
         _load(folder)
 
 

@@ -20,7 +20,9 @@ def test_shipped_configs_are_valid(path):
 
 def test_test_config_has_the_same_keys_as_the_real_one():
     def keys(d, prefix=""):
-        return {prefix + k for k in d} | {x for k, v in d.items() if isinstance(v, dict) for x in keys(v, prefix + k + ".")}
+        return {prefix + k for k in d} | {
+            x for k, v in d.items() if isinstance(v, dict) for x in keys(v, prefix + k + ".")
+        }
 
     assert keys(_config()) == keys(_config(".test/config/config.yaml"))
 
@@ -37,7 +39,10 @@ def test_every_schema_key_is_documented():
 def test_unknown_key_is_named_with_the_allowed_ones():
     c = _config()
     c["ssm"]["scalling"] = True
-    with pytest.raises(ConfigError, match=r"ssm: Additional properties are not allowed \('scalling' was unexpected\).*allowed keys: gpa_max_iter"):
+    with pytest.raises(
+        ConfigError,
+        match=r"ssm: Additional properties are not allowed \('scalling' was unexpected\).*allowed keys: gpa_max_iter",
+    ):
         validate_config(c, SCHEMA)
 
 

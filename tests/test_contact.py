@@ -6,14 +6,14 @@ whose L5-S1 disc collapses in the linear model (8 patients extrapolate badly).""
 import numpy as np
 import pytest
 
-from spinecohort.contact import disc_gaps, distraction_summary, level_offsets
-from spinecohort.hex_ssm import contact_offsets, transfer_fields
-from spinecohort.landmarks import DISCS
-from spinecohort.measure import measure
-from spinecohort.models import hex_points_checked
-from spinecohort.quality import scaled_jacobian
-from spinecohort.shards import hex_landmarks, sample_points
-from spinecohort.store import grid_weights
+from spinecohort.cohort.landmarks import DISCS
+from spinecohort.fe.models import hex_points_checked
+from spinecohort.measure.spinopelvic import measure
+from spinecohort.mesh.contact import disc_gaps, distraction_summary, level_offsets
+from spinecohort.mesh.hex_ssm import contact_offsets, transfer_fields
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.store.shards import hex_landmarks, sample_points
+from spinecohort.store.zarr_store import grid_weights
 
 
 def plate(z, tilt_deg=0.0, n=7):
@@ -37,8 +37,8 @@ def test_gap_of_parallel_and_tilted_plates():
 
 def test_level_offsets_open_each_disc_to_the_minimum_and_accumulate_cranially():
     gaps = np.full((1, 17), 5.0)
-    gaps[0, 16] = -2.0   # L5-S1 interpenetrates by 2 mm
-    gaps[0, 10] = 0.5    # T11-T12 just too thin
+    gaps[0, 16] = -2.0  # L5-S1 interpenetrates by 2 mm
+    gaps[0, 10] = 0.5  # T11-T12 just too thin
     normals = np.tile([0.0, 0.0, 1.0], (1, 17, 1))
     off = level_offsets(gaps, normals, 1.0)
     # L5 rises by 1 - (-2) = 3 mm; T12..L4 by the same; T11 and above by 3 + 0.5 mm
@@ -113,7 +113,8 @@ def test_every_extreme_model_is_valid_after_distraction(extreme, template):
 def test_contact_map_round_trips_through_npz(extreme, tmp_path):
     _, with_c, _ = extreme
     with_c.save(tmp_path / "h.npz")
-    from spinecohort.hex_ssm import HexSSM
+    from spinecohort.mesh.hex_ssm import HexSSM
+
     back = HexSSM.load(tmp_path / "h.npz")
     c, d = with_c.contact, back.contact
     assert d.min_height_mm == 1.0 and np.array_equal(c.tri_level, d.tri_level)

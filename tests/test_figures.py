@@ -15,8 +15,8 @@ import yaml
 from PIL import Image
 
 from spinecohort import figures as F
-from spinecohort.hex_ssm import HexSSM
-from spinecohort.hex_template import HexTemplate
+from spinecohort.mesh.hex_ssm import HexSSM
+from spinecohort.mesh.template import HexTemplate
 
 ROOT = Path(__file__).resolve().parents[1]
 TEST_FIGURES = yaml.safe_load((ROOT / ".test" / "config" / "config.yaml").read_text())["figures"]
@@ -70,9 +70,23 @@ def test_boundary_faces_of_hex_blocks_closed_form():
     assert len(faces) == 10 and np.bincount(owner).tolist() == [5, 5]
     n = 3
     idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)  # [k, j, i]
-    hexes = np.array([[idx[k, j, i], idx[k, j, i + 1], idx[k, j + 1, i + 1], idx[k, j + 1, i],
-                       idx[k + 1, j, i], idx[k + 1, j, i + 1], idx[k + 1, j + 1, i + 1], idx[k + 1, j + 1, i]]
-                      for k in range(n) for j in range(n) for i in range(n)])
+    hexes = np.array(
+        [
+            [
+                idx[k, j, i],
+                idx[k, j, i + 1],
+                idx[k, j + 1, i + 1],
+                idx[k, j + 1, i],
+                idx[k + 1, j, i],
+                idx[k + 1, j, i + 1],
+                idx[k + 1, j + 1, i + 1],
+                idx[k + 1, j + 1, i],
+            ]
+            for k in range(n)
+            for j in range(n)
+            for i in range(n)
+        ]
+    )
     faces, owner = F.hex_boundary_faces(hexes)
     assert len(faces) == 6 * n * n  # 54; the central hex owns none
     assert 13 not in owner
@@ -97,7 +111,7 @@ def test_part_render_shows_every_tissue_and_ligament_colour(model, tmp_path):
     renders = F.part_model_figure(template, hex_ssm.mean, tmp_path / "parts.png", size_px=(900, 600), dpi=100)
     assert set(renders) == {"lateral", "section", "frontal", "detail"}
     every = np.concatenate([im.reshape(-1, 3) for im in renders.values()])[:, None, :]
-    for tissue, (label, colour) in F.HEX_PART_STYLE.items():
+    for _tissue, (label, colour) in F.HEX_PART_STYLE.items():
         # the thin ones (0.7 mm CEP, shell ring) show in the section and the disc close-up
         assert _shaded_matches(every, colour) > 100, label
     assert _shaded_matches(every, F.SURFACE_STYLE[1]) > 1000
@@ -118,9 +132,13 @@ def test_gallery_from_a_personalization_table(model, tmp_path):
     template, hex_ssm = model
     k = hex_ssm.fields.shape[0]
     rng = np.random.default_rng(3)
-    table = pd.DataFrame({"ID": ["P07", "P07", "P02", "P02", "P05", "P05"],
-                          "method": ["projection", "fit"] * 3,
-                          **{f"b{j + 1}": rng.uniform(-2, 2, 6) for j in range(k)}})
+    table = pd.DataFrame(
+        {
+            "ID": ["P07", "P07", "P02", "P02", "P05", "P05"],
+            "method": ["projection", "fit"] * 3,
+            **{f"b{j + 1}": rng.uniform(-2, 2, 6) for j in range(k)},
+        }
+    )
     out = tmp_path / "gallery.png"
     ids = F.personalized_gallery_figure(hex_ssm, template, table, out, size_px=(600, 400), dpi=100, n_models=2)
     assert ids == ["P07", "P02"]  # the first two "fit" rows, in the table's order
@@ -137,8 +155,9 @@ def test_histograms_report_the_share_above_each_threshold(tmp_path):
     virtual = pd.DataFrame({"PT": np.arange(40.0), "PI": np.linspace(40, 80, 40)})
     patients = pd.DataFrame({"PT": [18.0, 22.0, 30.0], "PI": [50.0, 60.0, 70.0]})
     out = tmp_path / "h.png"
-    shares = F.parameter_histograms_figure(virtual, patients, {"PT_min_deg": 20.0}, ["PI", "PT"], out,
-                                           size_px=(800, 400), dpi=100)
+    shares = F.parameter_histograms_figure(
+        virtual, patients, {"PT_min_deg": 20.0}, ["PI", "PT"], out, size_px=(800, 400), dpi=100
+    )
     row = shares.set_index("parameter").loc["PT"]
     assert row["pct_virtual_above"] == pytest.approx(47.5) and row["pct_patients_above"] == pytest.approx(200 / 3)
     assert _rgb(out).shape == (400, 800, 3)
@@ -158,13 +177,31 @@ def test_quality_summary_rejects_tables_without_the_columns(tmp_path):
 
 def test_report_builds_with_every_figure(test_run):
     report = test_run / "report.html"
-    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
-                           str(test_run), "--report", str(report)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "snakemake",
+            "-s",
+            str(ROOT / "Snakefile"),
+            "--directory",
+            str(test_run),
+            "--report",
+            str(report),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     html = report.read_text()
     assert len(html) > 500_000  # self-contained: the PNGs are embedded (the test figures alone are ~1 MB)
     for name in EXPECTED_SIZES:
         assert Path(name).name in html, name
-    for category in ("1. Statistical shape model", "2. Hexahedral FE template", "3. Virtual cohort",
-                     "4. Personalized models"):
+    for category in (
+        "1. Statistical shape model",
+        "2. Hexahedral FE template",
+        "3. Virtual cohort",
+        "4. Personalized models",
+    ):
         assert category in html, category

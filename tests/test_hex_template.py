@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from spinecohort.abaqus import read_inp, write_inp
-from spinecohort.fe_export import fe_model
-from spinecohort.hex_ssm import inverted_over_grid, transfer_fields
-from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, HexTemplate, ogrid
-from spinecohort.landmarks import DISCS, LEVELS
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import procrustes_align
-from spinecohort.quality import scaled_jacobian
+from spinecohort.cohort.landmarks import DISCS, LEVELS
+from spinecohort.fe.abaqus import read_inp, write_inp
+from spinecohort.fe.export import fe_model
+from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, HexTemplate, ogrid
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import procrustes_align
 
 
 def test_ogrid_counts_and_nucleus_fraction():
@@ -46,7 +46,7 @@ def test_template_counts_and_sets(template, small_cohort):
     assert {len(t.elsets[f"LIG_{g}"]) for g in ("SSL", "ISL")} == {16}
     assert len(t.elsets["LIG_PLL"]) == 17 and len(t.elsets["LIG_ALL"]) == 17
     # surface nodes are the mean's own vertices
-    assert np.array_equal(t.nodes[t.n_hex_nodes:], build_ssm_mean(small_cohort)[t.surface_vertex])
+    assert np.array_equal(t.nodes[t.n_hex_nodes :], build_ssm_mean(small_cohort)[t.surface_vertex])
 
 
 def build_ssm_mean(cohort):
@@ -88,7 +88,11 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
     write_inp(fe_model(template), path)
     mesh = read_inp(path)
     counts = {c.type: len(c.data) for c in mesh.cells}
-    assert counts == {"hexahedron": len(template.hexes), "triangle": len(template.tris), "line": len(template.ligaments)}
+    assert counts == {
+        "hexahedron": len(template.hexes),
+        "triangle": len(template.tris),
+        "line": len(template.ligaments),
+    }
     assert len(mesh.points) == template.n_nodes
     for name, idx in template.nsets.items():
         assert np.array_equal(np.sort(mesh.point_sets[name]), np.sort(idx)), name
@@ -100,7 +104,7 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
 
 
 def test_ccx_accepts_the_template_deck(template, tmp_path):
-    from spinecohort.calculix import check_input, find_ccx
+    from spinecohort.fe.calculix import check_input, find_ccx
 
     try:
         find_ccx()
@@ -117,11 +121,13 @@ def test_hex_ssm_surface_nodes_follow_the_tri_ssm_exactly_and_smooth_inverts_les
     nearest = transfer_fields(template, template.nodes, ssm, small_cohort.landmarks, 3, "nearest")
     for h in (smooth, nearest):
         # surface elements are SSM vertices: their coordinates are the SSM's own for any weights
-        assert np.abs(h.sample(w)[:, template.n_hex_nodes:] - ssm.sample(w)[:, template.surface_vertex]).max() < 1e-9
+        assert np.abs(h.sample(w)[:, template.n_hex_nodes :] - ssm.sample(w)[:, template.surface_vertex]).max() < 1e-9
         assert np.array_equal(h.sample(np.zeros(3)), template.nodes)
     # linear in the weights: sample(a + b) - mean = (sample(a) - mean) + (sample(b) - mean)
     a, b = w
-    assert np.allclose(smooth.sample(a + b) - smooth.mean, smooth.sample(a) - smooth.mean + smooth.sample(b) - smooth.mean)
+    assert np.allclose(
+        smooth.sample(a + b) - smooth.mean, smooth.sample(a) - smooth.mean + smooth.sample(b) - smooth.mean
+    )
     levels = np.array(np.meshgrid(*[[-3, 0, 3]] * 3, indexing="ij")).reshape(3, -1).T.astype(float)
     s = inverted_over_grid(smooth, template.hexes, levels)
     n = inverted_over_grid(nearest, template.hexes, levels)

@@ -1,4 +1,4 @@
-"""Tests of spinecohort.measure on hand-built landmark geometry with closed-form answers.
+"""Tests of spinecohort.measure.spinopelvic on hand-built landmark geometry with closed-form answers.
 
 The geometry is built here, independently of any generator, in the construction frame V = +z, A = +y,
 Lh = +x (hip axis at the origin, left femoral head at -x).  Every endplate is a planar, centrally symmetric
@@ -13,9 +13,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from spinecohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
-from spinecohort.measure import (
-    UNITS, cobb_angle, fit_planes, fit_spheres, measure, measure_batch, parameter_table_header,
+from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
+from spinecohort.measure.spinopelvic import (
+    UNITS,
+    cobb_angle,
+    fit_planes,
+    fit_spheres,
+    measure,
+    measure_batch,
+    parameter_table_header,
 )
 
 NL = len(LEVELS)
@@ -64,8 +70,17 @@ def profile(knots):
     return p[0::2], p[1::2]  # superior, inferior
 
 
-def build(pi=55.0, pt=20.0, sag=None, cor=None, pelvic_radius=110.0, hip_width=170.0, fh_radii=(23.0, 24.0),
-          disc_h=None, body_h=None):
+def build(
+    pi=55.0,
+    pt=20.0,
+    sag=None,
+    cor=None,
+    pelvic_radius=110.0,
+    hip_width=170.0,
+    fh_radii=(23.0, 24.0),
+    disc_h=None,
+    body_h=None,
+):
     """One model: (N, 3) points, Landmarks, and the construction quantities the tests compare against."""
     sag_sup, sag_inf = sag if sag is not None else profile(SAG_KNOTS)
     cor_sup, cor_inf = cor if cor is not None else profile(COR_KNOTS)
@@ -85,8 +100,17 @@ def build(pi=55.0, pt=20.0, sag=None, cor=None, pelvic_radius=110.0, hip_width=1
     pts, rim = disk(s1c, s1n, S1_RADIUS)
     start = add("S1_sup", pts)
     sets["S1_rim"] = start + rim
-    geo = {"S1c": s1c, "SS": ss, "sag_sup": sag_sup, "sag_inf": sag_inf, "cor_sup": cor_sup, "cor_inf": cor_inf,
-           "disc_h": disc_h, "c_sup": {}, "c_inf": {}}
+    geo = {
+        "S1c": s1c,
+        "SS": ss,
+        "sag_sup": sag_sup,
+        "sag_inf": sag_inf,
+        "cor_sup": cor_sup,
+        "cor_inf": cor_inf,
+        "disc_h": disc_h,
+        "c_sup": {},
+        "c_inf": {},
+    }
     c_prev, n_prev = s1c, s1n
     for k in range(NL - 1, -1, -1):
         lv = LEVELS[k]
@@ -106,7 +130,8 @@ def build(pi=55.0, pt=20.0, sag=None, cor=None, pelvic_radius=110.0, hip_width=1
     add("symph", np.c_[gx.ravel(), np.full(gx.size, 70.0), gz.ravel() - 40.0])
     points = np.vstack(chunks)
     lm = Landmarks(
-        part=np.zeros(len(points), np.int16), part_names=("all",),
+        part=np.zeros(len(points), np.int16),
+        part_names=("all",),
         endplate_sup={**{lv: sets[f"{lv}_sup"] for lv in LEVELS}, "S1": sets["S1_sup"]},
         endplate_inf={lv: sets[f"{lv}_inf"] for lv in LEVELS},
         rim_sup={**{lv: sets[f"{lv}_sup_rim"] for lv in LEVELS}, "S1": sets["S1_rim"]},
@@ -268,7 +293,7 @@ def test_vertex_noise_tolerance(model):
     r = measure(noisy, lm, age=70.0).iloc[0]
     for c in ("PI", "PT", "SS", "LL", "LL_L4S1", "TK_T4T12", "TPA", "GT", "Cobb"):
         assert abs(r[c] - r0[c]) < 0.5, c
-    for k, (up, lo) in enumerate(DISCS):
+    for _k, (up, lo) in enumerate(DISCS):
         name = disc_name(up, lo)
         assert abs(r[f"DH_{name}"] - r0[f"DH_{name}"]) < 0.3, name
         assert abs(r[f"DHa_{name}"] - r0[f"DHa_{name}"]) < 1.5, name
@@ -282,7 +307,7 @@ def test_flat_lumbar_spine_ldi_undefined():
     # every lumbar superior endplate at the S1 slope (35 deg) -> LL = 0 -> LDI NaN, flagged, 0 points
     sup, inf = profile(SAG_KNOTS)
     sup, inf = sup.copy(), inf.copy()
-    sup[LI["L1"]:], inf[LI["L1"]:] = 35.0, 35.0
+    sup[LI["L1"] :], inf[LI["L1"] :] = 35.0, 35.0
     pts, lm, _ = build(sag=(sup, inf))
     r = measure(pts, lm).iloc[0]
     assert r.LL == pytest.approx(0.0, abs=1e-6)

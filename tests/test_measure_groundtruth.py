@@ -1,6 +1,6 @@
 """Measurement against the synthetic generator's ground truth (issue: every imposed parameter recovered).
 
-The generator knows each parameter because it placed the geometry (spinecohort.synthetic); the
+The generator knows each parameter because it placed the geometry (spinecohort.cohort.synthetic); the
 measurement fits planes and spheres to landmark vertices in a frame it derives from the femoral heads and
 the given vertical.  The two share no code.
 """
@@ -10,14 +10,34 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.landmarks import DISCS, disc_name
-from spinecohort.measure import measure
-from spinecohort.synthetic import RESOLUTIONS, build_patient_mesh, draw_patient, generate_cohort
+from spinecohort.cohort.landmarks import DISCS, disc_name
+from spinecohort.cohort.synthetic import RESOLUTIONS, build_patient_mesh, draw_patient, generate_cohort
+from spinecohort.measure.spinopelvic import measure
 
-ANGLES = ["PI", "PT", "SS", "LL", "LL_L4S1", "LL_L1L5", "PI_minus_LL", "LL_minus_PI", "GT", "GT_T1", "T1SPI", "TPA",
-          "TK_T1T12", "TK_T4T12", "TK_T5T12", "Cobb", "RPV", "RLL", "RSA"]
-DISTANCES = ["SVA_T1", "SVA_C7est", "FH_radius_L", "FH_radius_R", "HA_width"] + \
-    [f"DH_{disc_name(u, lo)}" for u, lo in DISCS]
+ANGLES = [
+    "PI",
+    "PT",
+    "SS",
+    "LL",
+    "LL_L4S1",
+    "LL_L1L5",
+    "PI_minus_LL",
+    "LL_minus_PI",
+    "GT",
+    "GT_T1",
+    "T1SPI",
+    "TPA",
+    "TK_T1T12",
+    "TK_T4T12",
+    "TK_T5T12",
+    "Cobb",
+    "RPV",
+    "RLL",
+    "RSA",
+]
+DISTANCES = ["SVA_T1", "SVA_C7est", "FH_radius_L", "FH_radius_R", "HA_width"] + [
+    f"DH_{disc_name(u, lo)}" for u, lo in DISCS
+]
 
 # Tolerances after rotation about the vertical + translation + 0.3 mm vertex noise (issue targets:
 # 0.5 deg, 0.5 mm).  SVA proxies use a single rim vertex (the S1 posterosuperior corner), so 0.3 mm

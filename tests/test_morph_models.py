@@ -3,24 +3,25 @@
 import numpy as np
 import pytest
 
-from spinecohort.hex_ssm import transfer_fields
-from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, build_template
-from spinecohort.models import hex_points_checked, parse_model_id, virtual_model, write_model
-from spinecohort.morph import MorphParameters, morph_template, ray_weights
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import procrustes_align
-from spinecohort.quality import morph_scaled_jacobian_nb, scaled_jacobian
-from spinecohort.repair import RepairError
-from spinecohort.stl_io import read_stl
-from spinecohort.store import grid_weights
+from spinecohort.cohort.stl_io import read_stl
+from spinecohort.fe.models import hex_points_checked, parse_model_id, virtual_model, write_model
+from spinecohort.mesh.hex_ssm import transfer_fields
+from spinecohort.mesh.morph import MorphParameters, morph_template, ray_weights
+from spinecohort.mesh.quality import morph_scaled_jacobian_nb, scaled_jacobian
+from spinecohort.mesh.repair import RepairError
+from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import procrustes_align
+from spinecohort.store.zarr_store import grid_weights
 
 
 @pytest.fixture(scope="module")
 def morphed(small_cohort):
     ssm = build_ssm(procrustes_align(small_cohort.vertices).aligned)
     t = build_template(ssm.mean, small_cohort.faces, small_cohort.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
-    nodes, report = morph_template(t, ssm.mean, small_cohort.faces, small_cohort.landmarks,
-                                   MorphParameters(max_iter=40, max_layers=2))
+    nodes, report = morph_template(
+        t, ssm.mean, small_cohort.faces, small_cohort.landmarks, MorphParameters(max_iter=40, max_layers=2)
+    )
     return ssm, t, nodes, report
 
 
@@ -37,7 +38,7 @@ def test_morphed_mean_is_on_the_surface_and_valid(morphed):
     layers = nodes[: t.n_hex_nodes].reshape(-1, n2, 3)
     assert np.allclose(np.linalg.norm(layers[1] - layers[0], axis=1), 0.7, atol=1e-9)
     # surface-element nodes are untouched SSM vertices
-    assert np.array_equal(nodes[t.n_hex_nodes:], t.nodes[t.n_hex_nodes:])
+    assert np.array_equal(nodes[t.n_hex_nodes :], t.nodes[t.n_hex_nodes :])
 
 
 def test_ray_fractions_run_from_core_to_surface(morphed):

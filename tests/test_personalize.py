@@ -5,13 +5,20 @@ import pandas as pd
 import pytest
 import yaml
 
-from spinecohort.abaqus import read_inp_nodes
-from spinecohort.hex_template import HexTemplate
-from spinecohort.personalize import (CORE_PARAMETERS, ParameterFunction, PersonalizationModel,
-                                     complete_pelvic_targets, landmark_vertices, pose, project_shapes,
-                                     shape_distances)
-from spinecohort.procrustes import procrustes_align
-from spinecohort.quality import scaled_jacobian
+from spinecohort.fe.abaqus import read_inp_nodes
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.personalize import (
+    CORE_PARAMETERS,
+    ParameterFunction,
+    PersonalizationModel,
+    complete_pelvic_targets,
+    landmark_vertices,
+    pose,
+    project_shapes,
+    shape_distances,
+)
+from spinecohort.ssm.procrustes import procrustes_align
 
 SHAPE_PARAMS = ["PI", "PT", "SS", "LL", "LL_L4S1", "TK_T4T12", "TK_T1T12"]
 
@@ -23,7 +30,8 @@ def fn(ssm, small_cohort):
 
 def test_landmark_subset_measures_like_the_whole_mesh(ssm, small_cohort, fn):
     # the restriction only drops vertices measure() never reads: identical parameters (float round-off)
-    from spinecohort.measure import measure
+    from spinecohort.measure.spinopelvic import measure
+
     w = np.array([[1.0, -2.0, 0.5], [0.0, 0.0, 0.0]])
     full = measure(ssm.sample(w), small_cohort.landmarks)[SHAPE_PARAMS].to_numpy()
     assert np.abs(fn(w, SHAPE_PARAMS) - full).max() < 1e-9
@@ -76,7 +84,7 @@ def test_projection_of_training_shapes_reproduces_pca_scores(ssm, small_cohort):
     x = (aligned - aligned.mean(0)).reshape(len(aligned), -1)
     u, s, _ = np.linalg.svd(x, full_matrices=False)
     # PCA scores in SD: U S / sqrt(d) = U sqrt(P - 1) (signs as the SSM chose them)
-    scores = u[:, :ssm.n_modes] * np.sqrt(len(aligned) - 1)
+    scores = u[:, : ssm.n_modes] * np.sqrt(len(aligned) - 1)
     sign = np.sign(np.sum(scores * ssm.project(aligned), axis=0))
     w, raw = project_shapes(ssm, aligned, ssm.n_modes, bound_sd=10.0)
     assert np.abs(raw - scores * sign).max() < 1e-8
@@ -87,6 +95,7 @@ def test_projection_of_training_shapes_reproduces_pca_scores(ssm, small_cohort):
 
 
 # --------------------------------------------------------------------- the pipeline's outputs (test DAG)
+
 
 def test_pipeline_personalization_table_and_errors(test_run):
     r = test_run / "results"
@@ -117,21 +126,35 @@ def test_pipeline_personalized_decks_have_no_inverted_hexes(test_run):
     t = pd.read_csv(r / "personalized" / "personalization.csv", dtype={"ID": str}).set_index(["ID", "method"])
     for deck in decks[:3]:  # reading a deck back: ~0.3 s each
         _, nodes = read_inp_nodes(deck)
-        sj = scaled_jacobian(nodes[:template.n_hex_nodes], template.hexes)
+        sj = scaled_jacobian(nodes[: template.n_hex_nodes], template.hexes)
         assert sj.min() > 0, deck  # 0 inverted elements in what a user gets
         assert t.loc[(deck.stem, "fit"), "invalid_after"] == 0
 
 
 def test_cli_personalize(test_run, tmp_path, capsys):
     from spinecohort.cli import main
+
     cfg = yaml.safe_load((test_run / "config" / "config.yaml").read_text())
     results = test_run / cfg["results"]
     # targets of a plausible model (the SSM mean's own parameters, shifted a little)
     t = pd.read_csv(results / "personalized" / "personalization.csv").query("method == 'projection'")
     pi, pt, ll = (float(t[f"{p}_achieved"].median()) for p in ("PI", "PT", "LL"))
     out = tmp_path / "model.inp"
-    args = ["personalize", "--PI", f"{pi:.2f}", "--PT", f"{pt:.2f}", "--LL", f"{ll:.2f}",
-            "--config", str(test_run / "config" / "config.yaml"), "--results", str(results), "--out", str(out)]
+    args = [
+        "personalize",
+        "--PI",
+        f"{pi:.2f}",
+        "--PT",
+        f"{pt:.2f}",
+        "--LL",
+        f"{ll:.2f}",
+        "--config",
+        str(test_run / "config" / "config.yaml"),
+        "--results",
+        str(results),
+        "--out",
+        str(out),
+    ]
     assert main(args) == 0
     text = capsys.readouterr().out
     rows = {line.split()[0]: line.split() for line in text.splitlines() if line.split()[:1] in (["PI"], ["SS"])}
@@ -139,7 +162,23 @@ def test_cli_personalize(test_run, tmp_path, capsys):
     assert abs(float(rows["PI"][3])) < 0.01
     _, nodes = read_inp_nodes(out)
     template = HexTemplate.load(results / "template" / "template.npz")
-    assert scaled_jacobian(nodes[:template.n_hex_nodes], template.hexes).min() > 0
-    assert main(["personalize", "--PI", "50", "--PT", "25", "--SS", "30", "--results", str(results),
-                 "--config", str(test_run / "config" / "config.yaml")]) == 2
+    assert scaled_jacobian(nodes[: template.n_hex_nodes], template.hexes).min() > 0
+    assert (
+        main(
+            [
+                "personalize",
+                "--PI",
+                "50",
+                "--PT",
+                "25",
+                "--SS",
+                "30",
+                "--results",
+                str(results),
+                "--config",
+                str(test_run / "config" / "config.yaml"),
+            ]
+        )
+        == 2
+    )
     assert "must equal PT + SS" in capsys.readouterr().err

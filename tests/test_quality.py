@@ -1,4 +1,4 @@
-"""Tests of spinecohort.quality against vtkMeshQuality, closed-form elements and dense sampling of det J."""
+"""Tests of spinecohort.mesh.quality against vtkMeshQuality, closed-form elements and dense sampling of det J."""
 
 import numpy as np
 import pytest
@@ -14,8 +14,19 @@ def structured_grid(n: int, h: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     X = np.stack(np.meshgrid(i, i, i, indexing="ij"), -1).reshape(-1, 3) * h
     nid = lambda a, b, c: (a * (n + 1) + b) * (n + 1) + c  # noqa: E731
     a, b, c = (t.ravel() for t in np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"))
-    H = np.stack([nid(a, b, c), nid(a + 1, b, c), nid(a + 1, b + 1, c), nid(a, b + 1, c),
-                  nid(a, b, c + 1), nid(a + 1, b, c + 1), nid(a + 1, b + 1, c + 1), nid(a, b + 1, c + 1)], 1)
+    H = np.stack(
+        [
+            nid(a, b, c),
+            nid(a + 1, b, c),
+            nid(a + 1, b + 1, c),
+            nid(a, b + 1, c),
+            nid(a, b, c + 1),
+            nid(a + 1, b, c + 1),
+            nid(a + 1, b + 1, c + 1),
+            nid(a, b + 1, c + 1),
+        ],
+        1,
+    )
     return X.astype(float), H
 
 
@@ -34,8 +45,10 @@ def vtk_quality(X, H, measure):
     pts.SetData(numpy_to_vtk(np.ascontiguousarray(X), deep=True))
     ug.SetPoints(pts)
     cells = vtk.vtkCellArray()
-    cells.SetData(numpy_to_vtk(np.arange(0, 8 * len(H) + 1, 8), deep=True, array_type=vtk.VTK_ID_TYPE),
-                  numpy_to_vtk(H.ravel().copy(), deep=True, array_type=vtk.VTK_ID_TYPE))
+    cells.SetData(
+        numpy_to_vtk(np.arange(0, 8 * len(H) + 1, 8), deep=True, array_type=vtk.VTK_ID_TYPE),
+        numpy_to_vtk(H.ravel().copy(), deep=True, array_type=vtk.VTK_ID_TYPE),
+    )
     ug.SetCells(vtk.VTK_HEXAHEDRON, cells)
     mq = vtk.vtkMeshQuality()
     mq.SetInputData(ug)
@@ -121,8 +134,18 @@ def test_edge_ratio_uses_all_12_edges_where_vtk_does_not():
 
 # an element positive at the 8 corners and the centre but with det J < 0 inside (found by random search,
 # rounded to 2 decimals; dense 41^3 sampling gives min det J = -0.066)
-HIDDEN_FOLD = np.array([[0.31, -0.29, 0.40], [1.11, 0.20, -0.05], [0.56, 0.60, -0.29], [0.23, 0.68, 0.14],
-                        [-0.42, 0.22, 0.61], [0.64, -0.43, 0.57], [0.93, 0.76, 0.92], [-0.30, 0.61, 1.23]])
+HIDDEN_FOLD = np.array(
+    [
+        [0.31, -0.29, 0.40],
+        [1.11, 0.20, -0.05],
+        [0.56, 0.60, -0.29],
+        [0.23, 0.68, 0.14],
+        [-0.42, 0.22, 0.61],
+        [0.64, -0.43, 0.57],
+        [0.93, 0.76, 0.92],
+        [-0.30, 0.61, 1.23],
+    ]
+)
 
 
 def test_certificate_catches_fold_hidden_from_corners_and_centre():
@@ -185,17 +208,20 @@ def test_batched_equals_per_sample():
         ms = q.hex_quality_metrics(batch[b], H)
         for k in ms:
             assert np.array_equal(mb[k][b], ms[k]), k
-    for f in (q.scaled_jacobian, q.verdict_jacobian, q.nodal_jacobian_ratio, q.gauss_jacobian_ratio,
-              q.edge_ratio):
+    for f in (q.scaled_jacobian, q.verdict_jacobian, q.nodal_jacobian_ratio, q.gauss_jacobian_ratio, q.edge_ratio):
         assert np.allclose(f(batch, H)[1], f(batch[1], H), rtol=0, atol=1e-14)
 
 
 def test_numba_full_metrics_equal_numpy():
     X, H = perturbed_grid(8, seed=4)
     m = q.hex_quality_metrics(X, H, certify=False)
-    for k, f in [("scaled_jacobian", q.scaled_jacobian), ("jacobian", q.verdict_jacobian),
-                 ("nodal_jacobian_ratio", q.nodal_jacobian_ratio), ("gauss_jacobian_ratio", q.gauss_jacobian_ratio),
-                 ("edge_ratio", q.edge_ratio)]:
+    for k, f in [
+        ("scaled_jacobian", q.scaled_jacobian),
+        ("jacobian", q.verdict_jacobian),
+        ("nodal_jacobian_ratio", q.nodal_jacobian_ratio),
+        ("gauss_jacobian_ratio", q.gauss_jacobian_ratio),
+        ("edge_ratio", q.edge_ratio),
+    ]:
         assert np.allclose(m[k], f(X, H), rtol=1e-12, atol=1e-12), k
     lo, hi = q.face_angles(X, H)
     assert np.allclose(m["min_face_angle_deg"], lo, atol=1e-9)
@@ -231,10 +257,15 @@ def test_table3_summary_counts():
     maxang[6] = 170.0  # vertebra warning and > 160
     er = np.full(E, 2.0)
     er[7] = 12.0
-    metrics = {"scaled_jacobian": sj, "nodal_jacobian_ratio": np.linspace(0.1, 1.0, E),
-               "gauss_jacobian_ratio": np.linspace(0.2, 1.0, E), "edge_ratio": er,
-               "min_face_angle_deg": np.full(E, 80.0), "max_face_angle_deg": maxang,
-               "certificate": np.where(np.arange(E) == 9, -1, 1)}  # element 9: hidden fold -> error
+    metrics = {
+        "scaled_jacobian": sj,
+        "nodal_jacobian_ratio": np.linspace(0.1, 1.0, E),
+        "gauss_jacobian_ratio": np.linspace(0.2, 1.0, E),
+        "edge_ratio": er,
+        "min_face_angle_deg": np.full(E, 80.0),
+        "max_face_angle_deg": maxang,
+        "certificate": np.where(np.arange(E) == 9, -1, 1),
+    }  # element 9: hidden fold -> error
     part = np.array(["AF", "AF"] + ["vertebra"] * 8)
     t = q.table3_summary(metrics, part).set_index("part")
     assert t.loc["AF", "pct_errors"] == 50.0

@@ -1,11 +1,11 @@
-"""Tests for spinecohort.registration on shapes with known ground truth (all lengths in mm)."""
+"""Tests for spinecohort.mesh.registration on shapes with known ground truth (all lengths in mm)."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from spinecohort import registration as reg
-from spinecohort.surfaces import superellipsoid
+from spinecohort.cohort.surfaces import superellipsoid
 
 
 def _vertebral_body(n_theta, n_rings, semi_axes=(20.0, 15.0, 12.0)):
@@ -17,6 +17,7 @@ def _rbf_field(centres, amplitudes, width_mm):
     def field(p):
         d2 = np.sum((p[:, None, :] - centres[None]) ** 2, axis=-1)
         return np.exp(-d2 / (2 * width_mm**2)) @ amplitudes
+
     return field
 
 
@@ -169,8 +170,12 @@ def test_surface_distance_to_octahedron():
 def test_surface_distance_methods_agree_on_curved_mesh():
     # The kd-tree candidate search and VTK's locator are both exact, so they must agree to rounding.
     verts, faces = _vertebral_body(40, 24)
-    pts = np.vstack([verts + np.random.default_rng(2).normal(0, 1.5, verts.shape),
-                     np.random.default_rng(3).uniform(-25, 25, (200, 3))])
+    pts = np.vstack(
+        [
+            verts + np.random.default_rng(2).normal(0, 1.5, verts.shape),
+            np.random.default_rng(3).uniform(-25, 25, (200, 3)),
+        ]
+    )
     d_vtk = reg.surface_distance(pts, verts, faces, method="vtk")
     d_kd = reg.surface_distance(pts, verts, faces, method="kdtree")
     assert np.max(np.abs(d_vtk - d_kd)) < 1e-9

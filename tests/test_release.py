@@ -43,10 +43,18 @@ def test_release_is_a_valid_bag_with_the_whole_payload(pristine):
     assert (pristine / "bagit.txt").read_text().startswith("BagIt-Version: 1.0\n")
     data = pristine / "data"
     names = {p.relative_to(data).as_posix() for p in data.rglob("*") if p.is_file()}
-    assert {"Mean_Model (Template).inp", "Descriptive_List.xlsx", "README.md", "cohort.zarr.parts.csv",
-            "model_inputs/ssm.npz", "model_inputs/faces.npy", "figures/mode_variation.png"} <= names
-    assert sorted(n for n in names if n.startswith("cohort.zarr.part0")) == \
-        [f"cohort.zarr.part00{k}.tar" for k in (1, 2, 3)]
+    assert {
+        "Mean_Model (Template).inp",
+        "Descriptive_List.xlsx",
+        "README.md",
+        "cohort.zarr.parts.csv",
+        "model_inputs/ssm.npz",
+        "model_inputs/faces.npy",
+        "figures/mode_variation.png",
+    } <= names
+    assert sorted(n for n in names if n.startswith("cohort.zarr.part0")) == [
+        f"cohort.zarr.part00{k}.tar" for k in (1, 2, 3)
+    ]
     assert len([n for n in names if n.startswith("patients/P")]) == 8  # the 8 test patients
     record = json.loads((pristine / "metadata" / "datacite.json").read_text())
     assert record["counts"]["n_models"] == 27 and record["counts"]["n_hex_nodes"] == 23028  # coarse template
@@ -90,8 +98,11 @@ def test_verify_names_a_truncated_archive(bag, tmp_path):
     part = bag / "data" / "cohort.zarr.part003.tar"
     full = part.read_bytes()
     part.write_bytes(full[: len(full) // 2])
-    with pytest.raises(ReleaseError, match=rf"data/cohort.zarr.part003.tar: {len(full) // 2} bytes, but "
-                                           rf"metadata/datacite.json records {len(full)} \(truncated"):
+    with pytest.raises(
+        ReleaseError,
+        match=rf"data/cohort.zarr.part003.tar: {len(full) // 2} bytes, but "
+        rf"metadata/datacite.json records {len(full)} \(truncated",
+    ):
         verify_release(bag)
     # the unpacking step on its own: a tar cut inside a member is refused by name, whatever the manifests say
     with pytest.raises(ReleaseError, match=r"part003.tar: not a complete tar archive"):
@@ -99,13 +110,33 @@ def test_verify_names_a_truncated_archive(bag, tmp_path):
 
 
 def test_two_release_runs_give_byte_identical_bags(test_run, pristine):
-    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
-                           str(test_run), "-j2", "--forcerun", "release"], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "snakemake",
+            "-s",
+            str(ROOT / "Snakefile"),
+            "--directory",
+            str(test_run),
+            "-j2",
+            "--forcerun",
+            "release",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     again = test_run / "results" / "release"
     assert "rule release:" in proc.stdout + proc.stderr  # it really ran again
-    for f in ("manifest-sha256.txt", "data/cohort.zarr.part001.tar", "data/cohort.zarr.part003.tar",
-              "data/README.md", "data/cohort.zarr.parts.csv"):
+    for f in (
+        "manifest-sha256.txt",
+        "data/cohort.zarr.part001.tar",
+        "data/cohort.zarr.part003.tar",
+        "data/README.md",
+        "data/cohort.zarr.parts.csv",
+    ):
         assert (again / f).read_bytes() == (pristine / f).read_bytes(), f
     # tag files carry the build date only; same day -> the same bytes too
     if (again / "bag-info.txt").read_text() == (pristine / "bag-info.txt").read_text():
@@ -142,13 +173,16 @@ def _malicious(path: Path, member: tarfile.TarInfo, payload: bytes = b"x") -> Pa
     return path
 
 
-@pytest.mark.parametrize("name, kind, message", [
-    ("../evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
-    ("cohort.zarr/../../evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
-    ("/tmp/spinecohort-evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
-    ("cohort.zarr/link", tarfile.SYMTYPE, "is a symlink"),
-    ("cohort.zarr/hard", tarfile.LNKTYPE, "is a hard link"),
-])
+@pytest.mark.parametrize(
+    "name, kind, message",
+    [
+        ("../evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
+        ("cohort.zarr/../../evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
+        ("/tmp/spinecohort-evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
+        ("cohort.zarr/link", tarfile.SYMTYPE, "is a symlink"),
+        ("cohort.zarr/hard", tarfile.LNKTYPE, "is a hard link"),
+    ],
+)
 def test_archive_members_cannot_escape_the_extraction_directory(tmp_path, name, kind, message):
     m = tarfile.TarInfo(name)
     m.type = kind
@@ -179,8 +213,12 @@ def test_bad_release_dir_stops_snakemake_before_any_rule(tmp_path):
     cfg = yaml.safe_load((ROOT / ".test" / "config" / "config.yaml").read_text())
     cfg["release"]["dir"] = "../outside"
     (work / "config" / "config.yaml").write_text(yaml.safe_dump(cfg))
-    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
-                           str(work), "-j1"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory", str(work), "-j1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode != 0 and "release.dir: '../outside' does not match" in proc.stdout + proc.stderr
     assert not (work / "results").exists()
     assert not (tmp_path / "outside").exists()
@@ -189,8 +227,17 @@ def test_bad_release_dir_stops_snakemake_before_any_rule(tmp_path):
 def test_payload_names_never_collide_silently(tmp_path):
     a, b = tmp_path / "r" / "x" / "fig.png", tmp_path / "r" / "figures" / "x" / "fig.png"
     with pytest.raises(ReleaseError, match="release name 'figures/x/fig.png' given twice"):
-        payload_layout(tmp_path / "r", template_inp="t.inp", workbook="w.xlsx", virtual_csv="v.csv",
-                       patient_table="p.csv", patients=[], personalized=[], figures=[a, b], model_inputs={})
+        payload_layout(
+            tmp_path / "r",
+            template_inp="t.inp",
+            workbook="w.xlsx",
+            virtual_csv="v.csv",
+            patient_table="p.csv",
+            patients=[],
+            personalized=[],
+            figures=[a, b],
+            model_inputs={},
+        )
 
 
 def test_export_from_an_unpacked_release_equals_export_from_results(test_run, pristine, tmp_path):
@@ -206,7 +253,7 @@ def test_export_from_an_unpacked_release_equals_export_from_results(test_run, pr
 
 
 def test_cli_verify_and_unpack(bag, tmp_path, capsys):
-    from spinecohort.store import check_store
+    from spinecohort.store.zarr_store import check_store
 
     assert main(["verify", str(bag)]) == 0
     assert "3 archive parts unpack to a complete store of 27 models" in capsys.readouterr().out

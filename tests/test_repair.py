@@ -1,4 +1,4 @@
-"""Deliberate-inversion tests of spinecohort.repair (hex-quality.md section 3.3, 'How to test in CI')."""
+"""Deliberate-inversion tests of spinecohort.mesh.repair (hex-quality.md section 3.3, 'How to test in CI')."""
 
 import numpy as np
 import pytest
@@ -19,8 +19,19 @@ def reference_mesh():
     i = np.arange(M)
     I, J, K = (t.ravel() for t in np.meshgrid(i, i, i, indexing="ij"))
     a, b, c = (t.ravel() for t in np.meshgrid(np.arange(N), np.arange(N), np.arange(N), indexing="ij"))
-    H = np.stack([nid(a, b, c), nid(a + 1, b, c), nid(a + 1, b + 1, c), nid(a, b + 1, c),
-                  nid(a, b, c + 1), nid(a + 1, b, c + 1), nid(a + 1, b + 1, c + 1), nid(a, b + 1, c + 1)], 1)
+    H = np.stack(
+        [
+            nid(a, b, c),
+            nid(a + 1, b, c),
+            nid(a + 1, b + 1, c),
+            nid(a, b + 1, c),
+            nid(a, b, c + 1),
+            nid(a + 1, b, c + 1),
+            nid(a + 1, b + 1, c + 1),
+            nid(a, b + 1, c + 1),
+        ],
+        1,
+    )
     g = np.cumsum(np.r_[0.0, 1.1 ** np.arange(N)])
     x = g[I] / g[-1] * N  # graded spacing, ratio 1.1
     y = J + 0.04 * x**2  # curved shear

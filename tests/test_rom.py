@@ -1,4 +1,4 @@
-"""Tests of spinecohort.rom (ROM submodels, pure-moment decks, Kabsch kinematics, in-vitro comparison) and
+"""Tests of spinecohort.rom.analysis (ROM submodels, pure-moment decks, Kabsch kinematics, in-vitro comparison) and
 the rom_model / rom_validation rules.  Closed-form cases: a pure moment on an elastic column against beam
 theory, a linear two-block unit's symmetry; the test-config DAG solves one lumbar functional unit (L3-L4)
 nonlinear with tension-only ligaments."""
@@ -14,12 +14,22 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.abaqus import FEModel, LinearElastic, Section, read_inp_nodes, write_inp
-from spinecohort.calculix import check_input
-from spinecohort.fe_export import DEFAULT_MATERIALS, materials_from_config
-from spinecohort.hex_template import HexTemplate
-from spinecohort.rom import (FacetContact, RomError, RomModel, column_levels, extract_rom_model, facet_gaps,
-                             kabsch_rotations, rom_deck_text, run_case, validate)
+from spinecohort.fe.abaqus import FEModel, LinearElastic, Section, read_inp_nodes, write_inp
+from spinecohort.fe.calculix import check_input
+from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.rom.analysis import (
+    FacetContact,
+    RomError,
+    RomModel,
+    column_levels,
+    extract_rom_model,
+    facet_gaps,
+    kabsch_rotations,
+    rom_deck_text,
+    run_case,
+    validate,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_CCX = shutil.which("ccx") is not None
@@ -43,8 +53,18 @@ def column(nx, nz_per, lengths, side):
         return (k * (nx + 1) + j) * (nx + 1) + i
 
     k, j, i = (a.ravel() for a in np.meshgrid(np.arange(len(zs) - 1), np.arange(nx), np.arange(nx), indexing="ij"))
-    hexes = np.column_stack([nid(i, j, k), nid(i + 1, j, k), nid(i + 1, j + 1, k), nid(i, j + 1, k),
-                             nid(i, j, k + 1), nid(i + 1, j, k + 1), nid(i + 1, j + 1, k + 1), nid(i, j + 1, k + 1)])
+    hexes = np.column_stack(
+        [
+            nid(i, j, k),
+            nid(i + 1, j, k),
+            nid(i + 1, j + 1, k),
+            nid(i, j + 1, k),
+            nid(i, j, k + 1),
+            nid(i + 1, j, k + 1),
+            nid(i + 1, j + 1, k + 1),
+            nid(i, j + 1, k + 1),
+        ]
+    )
     return nodes, hexes, np.array(part_of_layer)[k], np.array(zs)
 
 
@@ -54,13 +74,27 @@ def block_rom_model(parts, materials, etype="C3D8I", nx=4, nz_per=(8,), lengths=
     top = np.flatnonzero(nodes[:, 2] == zs[-1])
     base = np.flatnonzero(nodes[:, 2] == 0.0)
     sets = {name: np.flatnonzero(part == p) for p, name in enumerate(parts)}
-    fe = FEModel(nodes, {"HEXES": (etype, hexes)}, element_sets={f"P_{n}": v for n, v in sets.items()},
-                 materials=materials, sections=[Section(f"P_{n}", n) for n in parts])
-    return RomModel(fe, ["UP", "LO"], {"UP": top, "LO": base}, {"UP": top}, base,
-                    {"UP": np.eye(3), "LO": np.eye(3)}, np.arange(len(hexes)), np.arange(len(nodes)))
+    fe = FEModel(
+        nodes,
+        {"HEXES": (etype, hexes)},
+        element_sets={f"P_{n}": v for n, v in sets.items()},
+        materials=materials,
+        sections=[Section(f"P_{n}", n) for n in parts],
+    )
+    return RomModel(
+        fe,
+        ["UP", "LO"],
+        {"UP": top, "LO": base},
+        {"UP": top},
+        base,
+        {"UP": np.eye(3), "LO": np.eye(3)},
+        np.arange(len(hexes)),
+        np.arange(len(nodes)),
+    )
 
 
 # --- kinematics and bookkeeping (no solver) ------------------------------------------------------------
+
 
 def test_kabsch_recovers_known_rotations_batched():
     rng = np.random.default_rng(3)
@@ -88,21 +122,63 @@ def test_validate_judges_mean_sd_and_ranges():
     # L3-L4 of a unit: flexion 2.0, extension 5.0, lateral 3.0 + 3.5; references: flexion 3.7 +- 1.5 (2 SD:
     # 0.7..6.7 -> in, distance -1.7), lateral bending full 7.6 +- 2.8 (ours 6.5 -> in, -1.1), extension range
     # 1..4 (ours 5.0 -> out, +2.5 from the centre 2.5)
-    table = pd.DataFrame({"mode": "unit", "variant": "intact", "segment": "L3-L4",
-                          "load_case": ["flexion", "extension", "lateral_left", "lateral_right"],
-                          "rom_deg": [2.0, 5.0, 3.0, 3.5]})
-    refs = [dict(source="a", segment="L3-L4", motion="flexion", side="one", moment_nmm=7500.0, statistic="mean_sd",
-                 value=3.7, sd=1.5),
-            dict(source="b", segment="L3-L4", motion="lateral_bending", side="full", moment_nmm=7500.0,
-                 statistic="mean_sd", value=7.6, sd=2.8),
-            dict(source="c", segment="L3-L4", motion="extension", side="one", moment_nmm=7500.0, statistic="range",
-                 low=1.0, high=4.0),
-            dict(source="d", segment="T2-T3", motion="flexion", side="one", moment_nmm=7500.0, statistic="range",
-                 low=1.0, high=4.0)]
+    table = pd.DataFrame(
+        {
+            "mode": "unit",
+            "variant": "intact",
+            "segment": "L3-L4",
+            "load_case": ["flexion", "extension", "lateral_left", "lateral_right"],
+            "rom_deg": [2.0, 5.0, 3.0, 3.5],
+        }
+    )
+    refs = [
+        dict(
+            source="a",
+            segment="L3-L4",
+            motion="flexion",
+            side="one",
+            moment_nmm=7500.0,
+            statistic="mean_sd",
+            value=3.7,
+            sd=1.5,
+        ),
+        dict(
+            source="b",
+            segment="L3-L4",
+            motion="lateral_bending",
+            side="full",
+            moment_nmm=7500.0,
+            statistic="mean_sd",
+            value=7.6,
+            sd=2.8,
+        ),
+        dict(
+            source="c",
+            segment="L3-L4",
+            motion="extension",
+            side="one",
+            moment_nmm=7500.0,
+            statistic="range",
+            low=1.0,
+            high=4.0,
+        ),
+        dict(
+            source="d",
+            segment="T2-T3",
+            motion="flexion",
+            side="one",
+            moment_nmm=7500.0,
+            statistic="range",
+            low=1.0,
+            high=4.0,
+        ),
+    ]
     v = validate(table, refs, 7500.0, 2.0).set_index("source")
     assert list(v.index) == ["a", "b", "c"]  # no T2-T3 in the table
     assert v.loc["a", "in_range"] and v.loc["a", "distance_deg"] == pytest.approx(-1.7)
-    assert v.loc["b", "model_deg"] == 6.5 and v.loc["b", "in_range"] and v.loc["b", "distance_deg"] == pytest.approx(-1.1)
+    assert (
+        v.loc["b", "model_deg"] == 6.5 and v.loc["b", "in_range"] and v.loc["b", "distance_deg"] == pytest.approx(-1.1)
+    )
     assert not v.loc["c", "in_range"] and v.loc["c", "distance_deg"] == pytest.approx(2.5)
 
 
@@ -113,7 +189,10 @@ def test_rom_submodel_of_a_functional_unit(template):
     # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes; the annulus
     # hexes in their own C3D8R block, the rest C3D8
     n_af = len(template.elsets["D_L3L4_AF"])
-    assert m.fe.element_blocks["HEXES"][0] == "C3D8" and m.fe.element_blocks["HEXES_AF"] == ("C3D8R", m.fe.element_blocks["HEXES_AF"][1])
+    assert m.fe.element_blocks["HEXES"][0] == "C3D8" and m.fe.element_blocks["HEXES_AF"] == (
+        "C3D8R",
+        m.fe.element_blocks["HEXES_AF"][1],
+    )
     assert len(m.fe.element_blocks["HEXES_AF"][1]) == n_af
     assert len(m.fe.element_blocks["HEXES"][1]) + n_af == nq * (2 * res.body_layers + res.disc_layers + 2)
     assert set(m.fe.element_sets["D_L3L4_AF"]) == set(range(len(m.fe.element_blocks["HEXES"][1]), len(m.hex_elements)))
@@ -130,7 +209,7 @@ def test_rom_submodel_of_a_functional_unit(template):
 
 
 def test_ligament_law_is_the_bilinear_law_with_rounded_corners():
-    from spinecohort.fe_export import DEFAULT_LIGAMENTS, ligament_force_n, ligament_table
+    from spinecohort.fe.export import DEFAULT_LIGAMENTS, ligament_force_n, ligament_table
 
     law = DEFAULT_LIGAMENTS["CL"]  # E1 7.5, E2 32.9 MPa, transition 25 %, 30 mm^2
     a1, a2 = law.e1_mpa * law.area_mm2, law.e2_mpa * law.area_mm2
@@ -206,21 +285,28 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
 
 # --- CalculiX ---------------------------------------------------------------------------------------
 
+
 @needs_ccx
 def test_gap_element_closes_at_its_clearance(tmp_path):
     # node 2 pulled towards the fixed node 1 by 100 N against a 10 N/mm spring to a fixed node 3; the gap
     # (clearance 0.5 mm, 1000 N/mm, direction 1 -> 2) closes after 0.5 mm: 100 = 10 u + 1000 (u - 0.5)
     # -> u = 600 / 1010 = 0.59406 mm (without the gap: 10 mm)
-    from spinecohort.calculix import run_ccx
-    from spinecohort.abaqus import model_to_inp_text
+    from spinecohort.fe.abaqus import model_to_inp_text
+    from spinecohort.fe.calculix import run_ccx
 
-    fe = FEModel(np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]),
-                 {"G": ("GAPUNI", np.array([[0, 1]])), "S": ("SPRINGA", np.array([[1, 2]]))},
-                 sections=[Section("G", gap=(0.5, (1.0, 0.0, 0.0), 1000.0)),
-                           Section("S", spring_force_elongation=((-100.0, -10.0), (100.0, 10.0)))])
+    fe = FEModel(
+        np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]),
+        {"G": ("GAPUNI", np.array([[0, 1]])), "S": ("SPRINGA", np.array([[1, 2]]))},
+        sections=[
+            Section("G", gap=(0.5, (1.0, 0.0, 0.0), 1000.0)),
+            Section("S", spring_force_elongation=((-100.0, -10.0), (100.0, 10.0))),
+        ],
+    )
     deck = tmp_path / "gap.inp"
-    deck.write_text(model_to_inp_text(fe) + "*BOUNDARY\n1, 1, 3\n3, 1, 3\n2, 2, 3\n*STEP, NLGEOM\n*STATIC\n"
-                    "0.1, 1.0, 1e-5, 0.1\n*CLOAD\n2, 1, -100.\n*NODE PRINT, NSET=NALL\nU\n*END STEP\n")
+    deck.write_text(
+        model_to_inp_text(fe) + "*BOUNDARY\n1, 1, 3\n3, 1, 3\n2, 2, 3\n*STEP, NLGEOM\n*STATIC\n"
+        "0.1, 1.0, 1e-5, 0.1\n*CLOAD\n2, 1, -100.\n*NODE PRINT, NSET=NALL\nU\n*END STEP\n"
+    )
     res = run_ccx(deck, tmp_path)
     u = res.node_prints[-1].values[1][0]
     assert u == pytest.approx(-600.0 / 1010.0, rel=1e-4)
@@ -233,10 +319,22 @@ def test_two_segments_in_series_rotate_as_each_does_alone(template, tmp_path):
     # L2-L4 on the default mean; docs/rom.md); the configured elements (C3D8, annulus C3D8R) pass to 0.2 %.
     # Discs alone (no ligaments, no facets) at 7.5 N.m axial rotation, test-config mean.
     kw = dict(ligament_groups=(), hex_type="C3D8", annulus_hex_type="C3D8R")
-    alone = run_case(extract_rom_model(template, template.nodes, "L3", "L4", **kw), "axial_left",
-                     tmp_path / "alone", initial_increment=0.1, max_increment=0.25, average_force_n=100.0)
-    pair = run_case(extract_rom_model(template, template.nodes, "L2", "L4", **kw), "axial_left",
-                    tmp_path / "pair", initial_increment=0.1, max_increment=0.25, average_force_n=100.0)
+    alone = run_case(
+        extract_rom_model(template, template.nodes, "L3", "L4", **kw),
+        "axial_left",
+        tmp_path / "alone",
+        initial_increment=0.1,
+        max_increment=0.25,
+        average_force_n=100.0,
+    )
+    pair = run_case(
+        extract_rom_model(template, template.nodes, "L2", "L4", **kw),
+        "axial_left",
+        tmp_path / "pair",
+        initial_increment=0.1,
+        max_increment=0.25,
+        average_force_n=100.0,
+    )
     one = alone.rotations_deg[("L3", "L4")][2]
     inside = pair.rotations_deg[("L3", "L4")][2]
     assert one > 2.0  # a few degrees: the disc is loaded, not the solver's noise
@@ -269,10 +367,18 @@ def test_linear_two_block_unit_gives_equal_and_opposite_rom(tmp_path):
     # step the displacement field of -M is exactly minus that of +M, so flexion and extension (and left and
     # right bending) give the same ROM to solver precision
     mats = [LinearElastic("BONE", 12000.0, 0.3), LinearElastic("DISC", 10.0, 0.45)]
-    m = block_rom_model(["BONE", "DISC", "BONE2"], mats + [LinearElastic("BONE2", 12000.0, 0.3)], nx=4,
-                        nz_per=(2, 2, 2), lengths=(20.0, 10.0, 20.0), side=40.0)
-    roms = {c: run_case(m, c, tmp_path / c, moment_nmm=750.0, nlgeom=False).rotations_deg[("UP", "LO")]
-            for c in ("flexion", "extension", "lateral_left", "lateral_right")}
+    m = block_rom_model(
+        ["BONE", "DISC", "BONE2"],
+        mats + [LinearElastic("BONE2", 12000.0, 0.3)],
+        nx=4,
+        nz_per=(2, 2, 2),
+        lengths=(20.0, 10.0, 20.0),
+        side=40.0,
+    )
+    roms = {
+        c: run_case(m, c, tmp_path / c, moment_nmm=750.0, nlgeom=False).rotations_deg[("UP", "LO")]
+        for c in ("flexion", "extension", "lateral_left", "lateral_right")
+    }
     assert -roms["flexion"][0] > 0.05  # flexion: negative rotation about +x, a few tenths of a degree
     np.testing.assert_allclose(roms["flexion"], -roms["extension"], rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(roms["lateral_left"], -roms["lateral_right"], rtol=1e-5, atol=1e-9)
@@ -291,17 +397,25 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
     text = rom_deck_text(m, "flexion", 7500.0)
     deck = tmp_path / "fu.inp"
     deck.write_text(text.split("*NODE, NSET=RBNODES")[0])
-    for card in ("*ELASTIC\n12000.0, 0.3", "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.005",
-                 "*ELEMENT, TYPE=C3D8, ELSET=HEXES", "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_AF",
-                 "*USER MATERIAL, CONSTANTS=10", "SYSTEM=CYLINDRICAL", "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",
-                 "*SPRING, ELSET=LIG_ALL_", "*RIGID BODY, NSET=RB_L3", "*STEP, NLGEOM"):
+    for card in (
+        "*ELASTIC\n12000.0, 0.3",
+        "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.005",
+        "*ELEMENT, TYPE=C3D8, ELSET=HEXES",
+        "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_AF",
+        "*USER MATERIAL, CONSTANTS=10",
+        "SYSTEM=CYLINDRICAL",
+        "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",
+        "*SPRING, ELSET=LIG_ALL_",
+        "*RIGID BODY, NSET=RB_L3",
+        "*STEP, NLGEOM",
+    ):
         assert card in text, card
     assert "No analysis was selected" in check_input(deck, tmp_path / "check").log
 
 
 @needs_ccx
 def test_inverted_element_is_refused_before_the_solver(template, tmp_path, monkeypatch):
-    import spinecohort.calculix as calculix
+    import spinecohort.fe.calculix as calculix
 
     m = extract_rom_model(template, template.nodes, "L3", "L4")
     etype, hexes = m.fe.element_blocks["HEXES"]
@@ -319,6 +433,7 @@ def test_inverted_element_is_refused_before_the_solver(template, tmp_path, monke
 
 # --- the rules on the test config ---------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def rom_run(tmp_path_factory):
     """The test DAG up to results/rom/validation.csv (one L3-L4 unit, six nonlinear load cases) plus the
@@ -328,9 +443,20 @@ def rom_run(tmp_path_factory):
     work = tmp_path_factory.mktemp("rom_dag")
     shutil.copytree(ROOT / ".test" / "config", work / "config")
     snakemake = Path(sys.executable).with_name("snakemake")
-    proc = subprocess.run([str(snakemake), "-s", str(ROOT / "Snakefile"), "-d", str(work), "-j2",
-                           "results/rom/validation.csv", "results/models/model_00026.inp"],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            str(snakemake),
+            "-s",
+            str(ROOT / "Snakefile"),
+            "-d",
+            str(work),
+            "-j2",
+            "results/rom/validation.csv",
+            "results/models/model_00026.inp",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return work
 
@@ -338,8 +464,14 @@ def rom_run(tmp_path_factory):
 def test_rom_rules_solve_one_lumbar_unit_nonlinear(rom_run):
     r = rom_run / "results" / "rom"
     table = pd.read_csv(r / "model_00013.csv")
-    assert set(table["load_case"]) == {"flexion", "extension", "lateral_left", "lateral_right", "axial_left",
-                                       "axial_right"}
+    assert set(table["load_case"]) == {
+        "flexion",
+        "extension",
+        "lateral_left",
+        "lateral_right",
+        "axial_left",
+        "axial_right",
+    }
     assert set(table["segment"]) == {"L3-L4"} and (table["mode"] == "unit").all()
     rom = table.set_index("load_case")["rom_deg"]
     # every direction moves the way it is loaded, by a physiological amount (0.5..15 deg at 7.5 N.m)
@@ -372,11 +504,13 @@ def test_a_non_mean_store_model_deck_runs(rom_run, tmp_path):
 
 
 def test_exported_deck_has_fibre_annulus_and_per_group_ligaments(tmp_path, template):
-    from spinecohort.fe_export import fe_model
+    from spinecohort.fe.export import fe_model
 
     text = write_inp(fe_model(template), tmp_path / "m.inp").read_text()
     assert text.count("SYSTEM=CYLINDRICAL") == 17  # one per disc, T1-T2 ... L5-S1
     assert "*SOLID SECTION, ELSET=D_L4L5_AF, MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L4L5" in text
     assert "*SPRING, ELSET=LIG_ALL, NONLINEAR" in text
-    assert "*SPRING, ELSET=LIG_ALL, NONLINEAR" not in write_inp(
-        fe_model(template, include_all=False), tmp_path / "n.inp").read_text()
+    assert (
+        "*SPRING, ELSET=LIG_ALL, NONLINEAR"
+        not in write_inp(fe_model(template, include_all=False), tmp_path / "n.inp").read_text()
+    )

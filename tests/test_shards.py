@@ -5,15 +5,21 @@ import pandas as pd
 import pytest
 
 from spinecohort.cli import main
-from spinecohort.hex_ssm import HexSSM, transfer_fields
-from spinecohort.landmarks import Landmarks
-from spinecohort.measure import measure
-from spinecohort.quality import scaled_jacobian
-from spinecohort.repair import boundary_nodes
-from spinecohort.shards import check_and_repair, hex_landmarks, measure_shard, sample_points, sample_shard, \
-    shard_models_of
-from spinecohort.store import create_store, error_bound_mm, read_shard, write_shard
-from spinecohort.tables import parse_range, query_models, virtual_cohort_table
+from spinecohort.cohort.landmarks import Landmarks
+from spinecohort.measure.spinopelvic import measure
+from spinecohort.measure.tables import parse_range, query_models, virtual_cohort_table
+from spinecohort.mesh.hex_ssm import HexSSM, transfer_fields
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.repair import boundary_nodes
+from spinecohort.store.shards import (
+    check_and_repair,
+    hex_landmarks,
+    measure_shard,
+    sample_points,
+    sample_shard,
+    shard_models_of,
+)
+from spinecohort.store.zarr_store import create_store, error_bound_mm, read_shard, write_shard
 
 LEVELS = [-1.0, 0.0, 1.0]  # 3 modes x 3 levels = 27 models, shards of 9: shard 1 = IDs 9..17, mean = 13
 N_MODES = 3
@@ -69,8 +75,9 @@ def test_every_stored_model_has_positive_scaled_jacobians(shard1, template):
 def test_mean_model_measured_from_the_store_equals_the_ssm_mean(shard1, ssm, template, small_cohort):
     path, ids, w, _ = shard1
     lm = small_cohort.landmarks
-    params, diff = measure_shard(read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex/points"), w, ids,
-                                 lm, hex_landmarks(template, lm))
+    params, diff = measure_shard(
+        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex/points"), w, ids, lm, hex_landmarks(template, lm)
+    )
     row = params.set_index("model_id").loc["model_00013"]
     truth = measure(ssm.mean, lm).iloc[0]
     for col in ("PI", "PT", "SS", "LL", "LL_L4S1", "GT", "TPA", "Cobb"):
@@ -90,8 +97,10 @@ def test_hex_landmarks_name_the_same_places_as_the_tri_landmarks(template, small
     hl = hex_landmarks(template, lm)
     hl.validate(template.n_nodes, "hex landmarks")
     for side in ("L", "R"):  # surface nodes carry the mean's vertices exactly
-        assert np.array_equal(template.nodes[hl.femoral_head[side]], template.nodes[template.n_hex_nodes:][
-            np.searchsorted(template.surface_vertex, lm.femoral_head[side])])
+        assert np.array_equal(
+            template.nodes[hl.femoral_head[side]],
+            template.nodes[template.n_hex_nodes :][np.searchsorted(template.surface_vertex, lm.femoral_head[side])],
+        )
     n2 = len(template.grid.nodes)  # an endplate is a whole O-grid layer, its rim the outer ring
     assert len(hl.endplate_sup["L4"]) == n2 and len(hl.rim_sup["L4"]) == len(template.grid.outer)
     assert set(hl.rim_inf["T7"]) <= set(hl.endplate_inf["T7"])
@@ -135,8 +144,13 @@ def test_parse_range_and_query():
     for bad in ("50", ":", "a:b", "60:50"):
         with pytest.raises(ValueError):
             parse_range(bad, "PI")
-    t = pd.DataFrame({"model_id": ["model_00000", "model_00001", "model_00002"], "PI": [49.9, 50.0, 61.0],
-                      "PT": [30.0, 24.9, np.nan]})
+    t = pd.DataFrame(
+        {
+            "model_id": ["model_00000", "model_00001", "model_00002"],
+            "PI": [49.9, 50.0, 61.0],
+            "PT": [30.0, 24.9, np.nan],
+        }
+    )
     assert query_models(t, {"PI": (50.0, 60.0)}) == ["model_00001"]  # inclusive bounds
     assert query_models(t, {"PT": (25.0, None)}) == ["model_00000"]  # NaN never matches
     with pytest.raises(ValueError, match="no numeric column 'XX'"):
@@ -144,11 +158,24 @@ def test_parse_range_and_query():
 
 
 def test_virtual_table_joins_quality_and_cli_query_prints_ids(tmp_path, capsys):
-    params = [pd.DataFrame({"model_id": ["model_00001", "model_00000"], "w1": [0.0, -1.0], "PI": [55.0, 52.0]}),
-              pd.DataFrame({"model_id": ["model_00002"], "w1": [1.0], "PI": [58.0]})]
-    quality = [pd.DataFrame({"model_id": [0, 1, 2], "min_sj_before": [0.3, -0.1, 0.4], "min_sj_after": [0.3, 0.2, 0.4],
-                             "invalid_before": [0, 3, 0], "invalid_after": [0, 0, 0], "nodes_moved": [0, 12, 0],
-                             "max_displacement_mm": [0.0, 1.5, 0.0], "repaired": [False, True, False]})]
+    params = [
+        pd.DataFrame({"model_id": ["model_00001", "model_00000"], "w1": [0.0, -1.0], "PI": [55.0, 52.0]}),
+        pd.DataFrame({"model_id": ["model_00002"], "w1": [1.0], "PI": [58.0]}),
+    ]
+    quality = [
+        pd.DataFrame(
+            {
+                "model_id": [0, 1, 2],
+                "min_sj_before": [0.3, -0.1, 0.4],
+                "min_sj_after": [0.3, 0.2, 0.4],
+                "invalid_before": [0, 3, 0],
+                "invalid_after": [0, 0, 0],
+                "nodes_moved": [0, 12, 0],
+                "max_displacement_mm": [0.0, 1.5, 0.0],
+                "repaired": [False, True, False],
+            }
+        )
+    ]
     v = virtual_cohort_table(params, quality)
     assert v["model_id"].tolist() == ["model_00000", "model_00001", "model_00002"]
     assert v.loc[1, "invalid_before"] == 3 and v.loc[1, "nodes_moved"] == 12
@@ -163,7 +190,7 @@ def test_virtual_table_joins_quality_and_cli_query_prints_ids(tmp_path, capsys):
 def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, template, ssm, hex_ssm):
     """The quality table's Table 3 columns of a model equal ``table3_summary`` of that model alone (the
     pooled-metrics implementation used for the template's own Table 3)."""
-    from spinecohort.quality import hex_quality_metrics, table3_summary
+    from spinecohort.mesh.quality import hex_quality_metrics, table3_summary
 
     path, ids, w, quality = shard1
     tissue = template.part_of_hex()

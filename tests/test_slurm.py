@@ -30,8 +30,15 @@ PROFILE_SLURM = ROOT / "profiles" / "slurm"
 PROFILE_LOCAL = ROOT / "profiles" / "local"
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile")]
 # the first three stages of the test DAG, reached through the rules at their ends
-CORE_RULES = {"synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
-              "measure_patients"}
+CORE_RULES = {
+    "synthetic_cohort",
+    "validate_cohort",
+    "gpa",
+    "pca",
+    "ssm_quality",
+    "mode_variation_figure",
+    "measure_patients",
+}
 TARGETS = ["ssm_quality", "mode_variation_figure", "measure_patients"]
 DAEMONS = ("slurmd", "slurmctld", "munged")
 TIMEOUT_S = 600  # a hung snakemake (e.g. the sacct status trap) fails the test instead of blocking CI
@@ -104,14 +111,34 @@ def runs(slurm, tmp_path_factory):
         # niced, so the SLURM jobs (on the critical path) get the 2 cores first
         local_proc = subprocess.Popen(
             ["nice", "-n", "15", *SNAKEMAKE, "--profile", str(PROFILE_LOCAL), "--directory", str(local), *TARGETS],
-            env=slurm.env, stdout=local_out, stderr=subprocess.STDOUT, start_new_session=True)
+            env=slurm.env,
+            stdout=local_out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         try:
             # the test cluster's overrides: its partition, squeue status (no accounting), quick first check
             proc = subprocess.run(
-                [*SNAKEMAKE, "--profile", str(PROFILE_SLURM), "--directory", str(remote),
-                 "--default-resources", *_profile_default_resources(), "slurm_partition=debug",
-                 "--slurm-status-command", "squeue", "--slurm-init-seconds-before-status-checks", "1", *TARGETS],
-                env=slurm.env, capture_output=True, text=True, timeout=TIMEOUT_S)
+                [
+                    *SNAKEMAKE,
+                    "--profile",
+                    str(PROFILE_SLURM),
+                    "--directory",
+                    str(remote),
+                    "--default-resources",
+                    *_profile_default_resources(),
+                    "slurm_partition=debug",
+                    "--slurm-status-command",
+                    "squeue",
+                    "--slurm-init-seconds-before-status-checks",
+                    "1",
+                    *TARGETS,
+                ],
+                env=slurm.env,
+                capture_output=True,
+                text=True,
+                timeout=TIMEOUT_S,
+            )
             slurm_s = time.monotonic() - t0
             local_rc = local_proc.wait(timeout=TIMEOUT_S)
         finally:
@@ -121,14 +148,17 @@ def runs(slurm, tmp_path_factory):
     (remote / "snakemake.out").write_text(log)
     assert proc.returncode == 0, log[-4000:]
     assert local_rc == 0, (local / "snakemake.out").read_text()[-4000:]
-    print(f"\nSLURM: apt check/install {slurm.install_s:.1f} s, start {slurm.start_s:.1f} s, "
-          f"pipeline through sbatch {slurm_s:.1f} s")
+    print(
+        f"\nSLURM: apt check/install {slurm.install_s:.1f} s, start {slurm.start_s:.1f} s, "
+        f"pipeline through sbatch {slurm_s:.1f} s"
+    )
     return SimpleNamespace(local=local, remote=remote, log=log, slurm=slurm)
 
 
 def _scontrol(jobid, env):
-    out = subprocess.run(["scontrol", "show", "job", str(jobid)], env=env, capture_output=True, text=True,
-                         timeout=30, check=True).stdout
+    out = subprocess.run(
+        ["scontrol", "show", "job", str(jobid)], env=env, capture_output=True, text=True, timeout=30, check=True
+    ).stdout
     return dict(re.findall(r"(\w+)=(\S*)", out))
 
 
@@ -159,12 +189,21 @@ def test_slurm_outputs_equal_the_local_run(runs):
     lr, sr = runs.local / "results", runs.remote / "results"
     stls = sorted(p.name for p in (lr / "synthetic_cohort").glob("*.stl"))
     assert len(stls) == 8  # n_patients of the test config
-    for rel in ("synthetic_cohort/patients.csv", "synthetic_cohort/landmarks.json", "ssm/compactness.csv",
-                "ssm/quality.csv", "patients/parameters.csv", "patients/sheet_vs_measured.csv"):
+    for rel in (
+        "synthetic_cohort/patients.csv",
+        "synthetic_cohort/landmarks.json",
+        "ssm/compactness.csv",
+        "ssm/quality.csv",
+        "patients/parameters.csv",
+        "patients/sheet_vs_measured.csv",
+    ):
         assert (sr / rel).read_bytes() == (lr / rel).read_bytes(), rel
     # binary STL: numpy-stl writes the write time into the 80-byte header; count and facets must match
     for name in stls:
-        local_stl, slurm_stl = (lr / "synthetic_cohort" / name).read_bytes(), (sr / "synthetic_cohort" / name).read_bytes()
+        local_stl, slurm_stl = (
+            (lr / "synthetic_cohort" / name).read_bytes(),
+            (sr / "synthetic_cohort" / name).read_bytes(),
+        )
         assert len(slurm_stl) == len(local_stl) > 84 and slurm_stl[80:] == local_stl[80:], name
     # .npz members carry zip timestamps: compare the arrays, which must be bit-identical
     for rel in ("cohort/cohort.npz", "ssm/aligned.npz", "ssm/ssm.npz"):
@@ -179,7 +218,12 @@ def test_profile_sets_resources_for_every_rule_it_runs(runs):
     profile = yaml.safe_load((PROFILE_SLURM / "config.yaml").read_text())
     submitted = set(rule for _, rule in SUBMITTED.findall(runs.log))
     assert submitted <= set(profile["set-resources"]), submitted - set(profile["set-resources"])
-    listed = subprocess.run([*SNAKEMAKE, "--directory", str(runs.local), "--list-rules"], env=runs.slurm.env,
-                            capture_output=True, text=True, timeout=120)
+    listed = subprocess.run(
+        [*SNAKEMAKE, "--directory", str(runs.local), "--list-rules"],
+        env=runs.slurm.env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     rules = set(listed.stdout.split())
     assert set(profile["set-resources"]) <= rules, set(profile["set-resources"]) - rules  # no stale names

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import apply_transform, kabsch, procrustes_align
-from spinecohort.ssm_quality import generalization, generalization_errors, specificity
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import apply_transform, kabsch, procrustes_align
+from spinecohort.ssm.quality import generalization, generalization_errors, specificity
 
 
 def test_kabsch_recovers_a_known_rigid_and_similarity_transform(rng):

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spinecohort.stl_io import MeshInputError, merge_vertices, read_stl, write_stl
+from spinecohort.cohort.stl_io import MeshInputError, merge_vertices, read_stl, write_stl
 
 
 @pytest.mark.parametrize("ascii", [False, True])

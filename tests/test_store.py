@@ -13,8 +13,8 @@ import pytest
 import zarr
 
 from spinecohort import store as S
-from spinecohort.pca import build_ssm
-from spinecohort.procrustes import procrustes_align
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.procrustes import procrustes_align
 
 # Numcodecs filters are outside the v3 core spec; zarr says so on every open of the store.
 pytestmark = pytest.mark.filterwarnings("ignore:Numcodecs codecs are not in the Zarr")
@@ -87,8 +87,15 @@ def test_model_read_back_equals_the_ssm_formula_within_the_quantization_bound(ss
     n_tri = ssm.mean.shape[0]
     n_hex = _hex_stand_in(ssm.mean[None]).shape[1]
     path = tmp_path / "cohort.zarr"
-    S.create_store(path, n_tri, n_hex, n_modes=2, levels=levels, shard_models=7,
-                   attrs={"ssm_sha256": "0" * 64, "template_sha256": "1" * 64})
+    S.create_store(
+        path,
+        n_tri,
+        n_hex,
+        n_modes=2,
+        levels=levels,
+        shard_models=7,
+        attrs={"ssm_sha256": "0" * 64, "template_sha256": "1" * 64},
+    )
     assert S.check_store(path) == list(range(7))  # nothing written yet
     for s in range(7):
         shapes = ssm.sample(S.weights_of(np.arange(*S.shard_range(s, 7)), 2, levels))
@@ -150,14 +157,14 @@ def test_bad_input_raises_value_error(tmp_path):
 
 # ------------------------------------------------------------------------ concurrency and fault tolerance
 N_TRI, N_HEX, SHARD_MODELS = 2000, 700, 9
-_WRITER = """
+_WRITER = f"""
 import sys, numpy as np
-from spinecohort.store import write_shard, shard_range
+from spinecohort.store.zarr_store import write_shard, shard_range
 path, shard = sys.argv[1], int(sys.argv[2])
 rng = np.random.default_rng(shard)
-a, b = shard_range(shard, {sm})
-write_shard(path, shard, rng.uniform(-400, 400, (b - a, {nt}, 3)), rng.uniform(-400, 400, (b - a, {nh}, 3)))
-""".format(sm=SHARD_MODELS, nt=N_TRI, nh=N_HEX)
+a, b = shard_range(shard, {SHARD_MODELS})
+write_shard(path, shard, rng.uniform(-400, 400, (b - a, {N_TRI}, 3)), rng.uniform(-400, 400, (b - a, {N_HEX}, 3)))
+"""
 
 
 def _expected(shard):
@@ -178,8 +185,9 @@ def _files(path):
 def test_shards_written_by_concurrent_processes_do_not_interfere(tmp_path):
     path = tmp_path / "c.zarr"
     _new_store(path)
-    procs = [subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(s)], stderr=subprocess.PIPE)
-             for s in (2, 0, 1)]
+    procs = [
+        subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(s)], stderr=subprocess.PIPE) for s in (2, 0, 1)
+    ]
     for p in procs:
         assert p.wait(timeout=120) == 0, p.stderr.read().decode()
     assert S.check_store(path) == []

@@ -1,7 +1,14 @@
 import numpy as np
 
-from spinecohort.surfaces import (closed_loft, edge_check, segment_superellipsoid, signed_volume,
-                                  superellipse_ring, torus, uv_sphere)
+from spinecohort.cohort.surfaces import (
+    closed_loft,
+    edge_check,
+    segment_superellipsoid,
+    signed_volume,
+    superellipse_ring,
+    torus,
+    uv_sphere,
+)
 
 
 def test_sphere_is_closed_oriented_and_on_radius():

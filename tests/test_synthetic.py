@@ -3,10 +3,19 @@
 import numpy as np
 import pytest
 
-from spinecohort.landmarks import LEVELS
-from spinecohort.surfaces import edge_check, signed_volume
-from spinecohort.synthetic import (CRITERIA, RESOLUTIONS, build_chain, build_patient_mesh, coronal_endplate_tilts,
-                                   draw_patient, generate_cohort, pos_inf, pos_sup)
+from spinecohort.cohort.landmarks import LEVELS
+from spinecohort.cohort.surfaces import edge_check, signed_volume
+from spinecohort.cohort.synthetic import (
+    CRITERIA,
+    RESOLUTIONS,
+    build_chain,
+    build_patient_mesh,
+    coronal_endplate_tilts,
+    draw_patient,
+    generate_cohort,
+    pos_inf,
+    pos_sup,
+)
 
 
 def _sag(n):

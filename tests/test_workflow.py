@@ -15,8 +15,12 @@ SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
 
 def run(workdir, *args):
-    return subprocess.run([*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "-j2", *args],
-                          capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "-j2", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 # test_run (the whole DAG on the test config, once per session) lives in conftest.py: tests/test_release.py
@@ -33,7 +37,13 @@ def test_dag_produces_every_stage_output(test_run):
     assert comp["cumulative_variance"].iloc[-1] == pytest.approx(1.0)
     assert comp["cumulative_variance"].iloc[n - 1] >= 0.95 > (comp["cumulative_variance"].iloc[n - 2] if n > 1 else 0)
     q = pd.read_csv(r / "ssm" / "quality.csv")
-    assert list(q.columns) == ["modes", "generalization_mm", "generalization_sd_mm", "specificity_mm", "specificity_sd_mm"]
+    assert list(q.columns) == [
+        "modes",
+        "generalization_mm",
+        "generalization_sd_mm",
+        "specificity_mm",
+        "specificity_sd_mm",
+    ]
     for png in ("ssm/compactness.png", "ssm/quality.png", "figures/mode_variation.png"):
         data = (r / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, png
@@ -52,7 +62,8 @@ def test_dag_produces_every_stage_output(test_run):
     # a model keeps inverted hexes only where its repair failed (and the shard's quality table says so)
     assert ((virtual["invalid_after"] > 0) <= (virtual["invalid_before"] > 0)).all()
     assert (virtual.loc[virtual["repaired"], "min_sj_after"] > 0).all()
-    from spinecohort.store import check_store
+    from spinecohort.store.zarr_store import check_store
+
     assert check_store(r / "cohort.zarr") == []
     assert {"ID", "age", "PI [deg]", "LDI [%]", "DH_L4-L5 [mm]", "GAP [points]"} <= set(sheets["Patients"].columns)
     morph = pd.read_csv(r / "template" / "morph_report.csv")
@@ -65,9 +76,21 @@ def test_dag_produces_every_stage_output(test_run):
     assert contact.loc["smooth", "models_with_inverted"] == 0 and contact.loc["smooth", "min_scaled_jacobian"] > 0
     deck = (r / "template" / "Mean_Model (Template).inp").read_text()
     assert deck.count("*ELEMENT, TYPE=C3D8") == 1 and "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck
-    for rule in ("synthetic_cohort", "validate_cohort", "gpa", "pca", "ssm_quality", "mode_variation_figure",
-                 "measure_patients", "descriptive_list", "hex_template", "morph_template", "hex_ssm",
-                 "template_inp", "init_store"):
+    for rule in (
+        "synthetic_cohort",
+        "validate_cohort",
+        "gpa",
+        "pca",
+        "ssm_quality",
+        "mode_variation_figure",
+        "measure_patients",
+        "descriptive_list",
+        "hex_template",
+        "morph_template",
+        "hex_ssm",
+        "template_inp",
+        "init_store",
+    ):
         assert (test_run / "logs" / f"{rule}.log").exists()
         assert (r / "benchmarks" / f"{rule}.tsv").exists()
 
@@ -102,10 +125,16 @@ def test_one_model_by_target_file_runs_only_that_job(test_run):
 
 def test_config_change_reruns_only_the_rules_that_use_it(test_run):
     # params are rerun triggers: a new hex type changes only the template deck (and nothing upstream)
-    assert _planned_jobs(test_run, "--config", "template={'resolution': 'coarse', 'hex_type': 'C3D8I'}") == \
-        {"template_inp": 1, "personalize": 1, "release": 1, "all": 1,
-         # the personalized decks use the hex type; the sheet and the two figures read the personalization table
-         "descriptive_list": 1, "personalized_gallery_figure": 1, "parameter_histograms_figure": 1}
+    assert _planned_jobs(test_run, "--config", "template={'resolution': 'coarse', 'hex_type': 'C3D8I'}") == {
+        "template_inp": 1,
+        "personalize": 1,
+        "release": 1,
+        "all": 1,
+        # the personalized decks use the hex type; the sheet and the two figures read the personalization table
+        "descriptive_list": 1,
+        "personalized_gallery_figure": 1,
+        "parameter_histograms_figure": 1,
+    }
 
 
 def test_broken_user_stl_fails_with_the_file_named_and_no_output(test_run, tmp_path):
@@ -137,8 +166,12 @@ def test_bad_config_is_rejected_before_any_rule(tmp_path):
 
 
 def test_lint_is_clean():
-    proc = subprocess.run([*SNAKEMAKE, "--lint", "-s", str(ROOT / "Snakefile"), "--directory", str(ROOT)],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [*SNAKEMAKE, "--lint", "-s", str(ROOT / "Snakefile"), "--directory", str(ROOT)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert "Congratulations, your workflow is in a good condition!" in proc.stdout + proc.stderr
 
 
@@ -180,7 +213,7 @@ def test_a_corrupted_shard_is_detected_and_only_it_is_rebuilt(run_copy):
 def test_a_shard_job_killed_mid_write_leaves_no_record_and_the_rerun_is_byte_identical(run_copy):
     import os
 
-    from spinecohort.store import FAULT_KILL_ENV, check_store, invalidate_shard
+    from spinecohort.store.zarr_store import FAULT_KILL_ENV, check_store, invalidate_shard
 
     store = run_copy / "results" / "cohort.zarr"
     before = _store_files(store)
@@ -190,8 +223,21 @@ def test_a_shard_job_killed_mid_write_leaves_no_record_and_the_rerun_is_byte_ide
     (run_copy / "results" / "store_check.csv").unlink()
     # the job writes tri/points, then is SIGKILLed before hex/points (a node failure mid-write)
     env = {**os.environ, FAULT_KILL_ENV: "2"}
-    proc = subprocess.run([*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "--directory", str(run_copy), "-j1",
-                           "results/shards/00002.sample.json"], capture_output=True, text=True, timeout=600, env=env)
+    proc = subprocess.run(
+        [
+            *SNAKEMAKE,
+            "-s",
+            str(ROOT / "Snakefile"),
+            "--directory",
+            str(run_copy),
+            "-j1",
+            "results/shards/00002.sample.json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
     assert proc.returncode != 0 and "sample_shard" in proc.stderr
     assert (store / "tri" / "points" / "c" / "2" / "0" / "0").exists()  # killed mid-write, not before it
     assert not (run_copy / "results" / "shards" / "00002.sample.json").exists()  # no sentinel

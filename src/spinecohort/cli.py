@@ -13,8 +13,8 @@ import numpy as np
 def _generate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .cohort import write_cohort_folder
-    from .synthetic import generate_cohort
+    from spinecohort.cohort.loading import write_cohort_folder
+    from spinecohort.cohort.synthetic import generate_cohort
 
     bar = tqdm(total=args.n, desc="patients", unit="patient", disable=args.quiet)
 
@@ -24,17 +24,20 @@ def _generate(args: argparse.Namespace) -> int:
     c = generate_cohort(args.n, seed=args.seed, resolution=args.resolution, noise_mm=args.noise_mm, progress=progress)
     bar.close()
     write_cohort_folder(args.out, c.ids, c.vertices, c.faces, c.landmarks, c.table)
-    print(f"{len(c.ids)} patients ({c.n_candidates} candidates drawn), {c.vertices.shape[1]} vertices each -> {args.out}")
+    print(
+        f"{len(c.ids)} patients ({c.n_candidates} candidates drawn), {c.vertices.shape[1]} vertices each -> {args.out}"
+    )
     return 0
 
 
 def _check(args: argparse.Namespace) -> int:
-    from .cohort import load_cohort
+    from spinecohort.cohort.loading import load_cohort
 
     folder = Path(args.folder)
     stls = sorted(folder.glob("*.stl"))
-    c = load_cohort(stls, args.sheet or folder / "patients.csv", args.landmarks or folder / "landmarks.json",
-                    units=args.units)
+    c = load_cohort(
+        stls, args.sheet or folder / "patients.csv", args.landmarks or folder / "landmarks.json", units=args.units
+    )
     ext = c.points.max(1) - c.points.min(1)
     print(f"{len(c.ids)} patients, {c.points.shape[1]} vertices, {len(c.faces)} triangles, in correspondence")
     print(f"extent (mm): {np.round(ext.mean(0), 1)} on average; sheet columns: {', '.join(c.table.columns)}")
@@ -42,28 +45,31 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _ssm_info(args: argparse.Namespace) -> int:
-    from .pca import SSM
+    from spinecohort.ssm.model import SSM
 
     ssm = SSM.load(args.ssm)
     print(f"{ssm.n_train} training shapes, {ssm.mean.shape[0]} vertices, {ssm.n_modes} modes")
     for t in (0.8, 0.9, 0.95, 0.99):
         print(f"  {100 * t:.0f} % of the variance: {ssm.modes_for_variance(t)} modes")
     sd = np.sqrt(ssm.eigenvalues[:10])
-    print("  SD of the first modes (mm, RMS per vertex): " + ", ".join(f"{s / np.sqrt(ssm.mean.shape[0]):.2f}" for s in sd))
+    print(
+        "  SD of the first modes (mm, RMS per vertex): "
+        + ", ".join(f"{s / np.sqrt(ssm.mean.shape[0]):.2f}" for s in sd)
+    )
     return 0
 
 
 def _export(args: argparse.Namespace) -> int:
     import yaml
 
-    from .cohort import load_cohort_npz
-    from .hex_ssm import HexSSM
-    from .hex_template import HexTemplate
-    from .models import virtual_model, write_model
-    from .pca import SSM
+    from spinecohort.cohort.loading import load_cohort_npz
+    from spinecohort.fe.models import virtual_model, write_model
+    from spinecohort.mesh.hex_ssm import HexSSM
+    from spinecohort.mesh.template import HexTemplate
+    from spinecohort.ssm.model import SSM
 
     if args.release:  # an unpacked release: its model_inputs/ hold everything (no config, no Snakemake)
-        from .release import release_model_inputs
+        from spinecohort.release import release_model_inputs
 
         src = release_model_inputs(args.release)
         grid, hex_type = src["grid"], src["hex_type"]
@@ -73,36 +79,50 @@ def _export(args: argparse.Namespace) -> int:
         r = Path(args.results or cfg["results"])
         grid, hex_type = cfg["grid"], cfg["template"]["hex_type"]
         fe_cfg = cfg.get("fe")  # materials of the deck (None: the defaults, equal to config/config.yaml)
-        src = {"ssm": r / "ssm" / "ssm.npz", "hex_ssm": r / "template" / "hex_ssm.npz",
-               "template": r / "template" / "template.npz"}
+        src = {
+            "ssm": r / "ssm" / "ssm.npz",
+            "hex_ssm": r / "template" / "hex_ssm.npz",
+            "template": r / "template" / "template.npz",
+        }
         faces = lambda: load_cohort_npz(r / "cohort" / "cohort.npz").faces  # noqa: E731
     template = HexTemplate.load(src["template"])
-    vm = virtual_model(args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]),
-                       template, grid["n_modes"], grid["levels"])
+    vm = virtual_model(
+        args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]), template, grid["n_modes"], grid["levels"]
+    )
     out = args.out or Path(f"model_{vm.model_id:05d}.{args.format}")
-    from .fe_export import materials_from_config
+    from spinecohort.fe.export import materials_from_config
 
-    write_model(vm, args.format, out, template, faces(), hex_type,
-                materials=materials_from_config(src["fe"] if args.release else fe_cfg))
+    write_model(
+        vm,
+        args.format,
+        out,
+        template,
+        faces(),
+        hex_type,
+        materials=materials_from_config(src["fe"] if args.release else fe_cfg),
+    )
     print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {vm.repair}")
     return 0
 
 
 def _verify(args: argparse.Namespace) -> int:
-    from .release import verify_release
+    from spinecohort.release import verify_release
 
     rep = verify_release(args.release, processes=args.processes, unpack=not args.no_unpack, workdir=args.tmpdir)
-    unpacked = (f"; {rep['parts']} archive parts unpack to a complete store of {rep['models']} models"
-                if "parts" in rep else "")
-    print(f"{args.release}: valid BagIt bag, {rep['files']} payload files ({rep['bytes'] / 1e6:.1f} MB), every "
-          f"sha256 matches{unpacked} ({rep['seconds']:.1f} s)")
+    unpacked = (
+        f"; {rep['parts']} archive parts unpack to a complete store of {rep['models']} models" if "parts" in rep else ""
+    )
+    print(
+        f"{args.release}: valid BagIt bag, {rep['files']} payload files ({rep['bytes'] / 1e6:.1f} MB), every "
+        f"sha256 matches{unpacked} ({rep['seconds']:.1f} s)"
+    )
     return 0
 
 
 def _unpack(args: argparse.Namespace) -> int:
     import csv
 
-    from .release import PARTS_INDEX, safe_extract
+    from spinecohort.release import PARTS_INDEX, safe_extract
 
     data = Path(args.release) / "data"
     index = data / PARTS_INDEX
@@ -118,7 +138,7 @@ def _unpack(args: argparse.Namespace) -> int:
 
 
 def _check_store(args: argparse.Namespace) -> int:
-    from .store import invalidate_shard, shard_problems
+    from spinecohort.store.zarr_store import invalidate_shard, shard_problems
 
     problems = shard_problems(args.store)
     if not problems:
@@ -127,8 +147,11 @@ def _check_store(args: argparse.Namespace) -> int:
     for shard, why in sorted(problems.items()):
         print(f"shard {shard:05d}: {why}")
     if not args.rebuild:
-        print(f"{len(problems)} shard(s) to rebuild: run `spinecohort check-store {args.store} --rebuild`, then "
-              "snakemake, which rewrites exactly those shards", file=sys.stderr)
+        print(
+            f"{len(problems)} shard(s) to rebuild: run `spinecohort check-store {args.store} --rebuild`, then "
+            "snakemake, which rewrites exactly those shards",
+            file=sys.stderr,
+        )
         return 1
     records = args.records or Path(args.store).parent / "shards"
     for shard in sorted(problems):
@@ -146,7 +169,7 @@ def _query(args: argparse.Namespace) -> int:
     import pandas as pd
     import yaml
 
-    from .tables import parse_range, query_models
+    from spinecohort.measure.tables import parse_range, query_models
 
     filters = args.filters
     if len(filters) % 2 or not all(f.startswith("--") for f in filters[::2]):
@@ -165,15 +188,16 @@ def _query(args: argparse.Namespace) -> int:
 def _personalize(args: argparse.Namespace) -> int:
     import yaml
 
-    from .cohort import load_cohort_npz
-    from .measure import UNITS
-    from .pca import SSM
-    from .personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
+    from spinecohort.cohort.loading import load_cohort_npz
+    from spinecohort.measure.spinopelvic import UNITS
+    from spinecohort.personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
+    from spinecohort.ssm.model import SSM
 
     filters = args.filters
     if not filters or len(filters) % 2 or not all(f.startswith("--") for f in filters[::2]):
-        raise ValueError("personalize needs target pairs '--PARAM value', e.g. --PI 55 --PT 28 --LL 30, got "
-                         f"'{' '.join(filters)}'")
+        raise ValueError(
+            f"personalize needs target pairs '--PARAM value', e.g. --PI 55 --PT 28 --LL 30, got '{' '.join(filters)}'"
+        )
     targets = {}
     for k, v in zip(filters[::2], filters[1::2]):
         try:
@@ -189,36 +213,53 @@ def _personalize(args: argparse.Namespace) -> int:
     for f in (r / "ssm" / "ssm.npz", r / "cohort" / "cohort.npz"):
         if not f.is_file():
             raise ValueError(f"{f} does not exist; run the pipeline (snakemake) up to the SSM first")
-    model = build_model(SSM.load(r / "ssm" / "ssm.npz"), load_cohort_npz(r / "cohort" / "cohort.npz").landmarks,
-                        settings, {"vertical": m["vertical_axis"], "c7_proxy": m["c7_proxy"]})
+    model = build_model(
+        SSM.load(r / "ssm" / "ssm.npz"),
+        load_cohort_npz(r / "cohort" / "cohort.npz").landmarks,
+        settings,
+        {"vertical": m["vertical_axis"], "c7_proxy": m["c7_proxy"]},
+    )
     res = model.fit(targets)
-    print(f"weights (SD): {np.round(res.weights, 4).tolist()}; posture {res.posture_deg:.3f} deg; "
-          f"{res.at_bound} weight(s) at +-{settings.bound_sd:g} SD")
+    print(
+        f"weights (SD): {np.round(res.weights, 4).tolist()}; posture {res.posture_deg:.3f} deg; "
+        f"{res.at_bound} weight(s) at +-{settings.bound_sd:g} SD"
+    )
     print(f"{'parameter':<12}{'target':>10}{'achieved':>10}{'error':>9}  unit")
     for p in settings.parameters:
         t = targets.get(p, float("nan"))
         print(f"{p:<12}{t:>10.3f}{res.achieved[p]:>10.3f}{res.achieved[p] - t:>9.3f}  {UNITS.get(p, '')}")
     if args.out:
-        from .abaqus import write_inp, write_vtu
-        from .fe_export import fe_model, materials_from_config
-        from .hex_ssm import HexSSM
-        from .hex_template import HexTemplate
+        from spinecohort.fe.abaqus import write_inp, write_vtu
+        from spinecohort.fe.export import fe_model, materials_from_config
+        from spinecohort.mesh.hex_ssm import HexSSM
+        from spinecohort.mesh.template import HexTemplate
 
         template = HexTemplate.load(r / "template" / "template.npz")
-        pts, rep = personalized_hex(template, HexSSM.load(r / "template" / "hex_ssm.npz"), res.weights,
-                                    res.posture_deg, name="personalized model")
-        heading = (f"spinecohort personalized model: targets {targets}, weights (SD) "
-                   f"{np.round(res.weights, 4).tolist()}, posture {res.posture_deg:.3f} deg")
-        fe = fe_model(template, pts, hex_type=cfg["template"]["hex_type"], heading=heading,
-                      materials=materials_from_config(cfg.get("fe")))
+        pts, rep = personalized_hex(
+            template,
+            HexSSM.load(r / "template" / "hex_ssm.npz"),
+            res.weights,
+            res.posture_deg,
+            name="personalized model",
+        )
+        heading = (
+            f"spinecohort personalized model: targets {targets}, weights (SD) "
+            f"{np.round(res.weights, 4).tolist()}, posture {res.posture_deg:.3f} deg"
+        )
+        fe = fe_model(
+            template,
+            pts,
+            hex_type=cfg["template"]["hex_type"],
+            heading=heading,
+            materials=materials_from_config(cfg.get("fe")),
+        )
         if args.out.suffix == ".vtu":
             write_vtu(fe, args.out)
         elif args.out.suffix == ".inp":
             write_inp(fe, args.out, provenance=heading)
         else:
             raise ValueError(f"--out {args.out}: use a .inp or .vtu file name")
-        print(f"-> {args.out}; Jacobian check: "
-              f"{ {k: v for k, v in rep.items() if k != 'level_offsets_mm'} }")
+        print(f"-> {args.out}; Jacobian check: { {k: v for k, v in rep.items() if k != 'level_offsets_mm'} }")
     return 0
 
 
@@ -252,40 +293,57 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", type=Path)
     e.add_argument("--config", type=Path, default=Path("config/config.yaml"))
     e.add_argument("--results", type=Path, help="results folder (default: the config's)")
-    e.add_argument("--release", type=Path, help="build from a downloaded release (the bag folder) instead of "
-                                                "the results; needs neither config nor Snakemake")
+    e.add_argument(
+        "--release",
+        type=Path,
+        help="build from a downloaded release (the bag folder) instead of "
+        "the results; needs neither config nor Snakemake",
+    )
     e.set_defaults(func=_export)
 
-    v = sub.add_parser("verify", help="check a release bag: every checksum, no missing or extra file, and the "
-                                      "archives unpack to a complete store")
+    v = sub.add_parser(
+        "verify",
+        help="check a release bag: every checksum, no missing or extra file, and the "
+        "archives unpack to a complete store",
+    )
     v.add_argument("release", type=Path, help="the bag folder (results/release)")
     v.add_argument("--no-unpack", action="store_true", help="only the BagIt checks (no unpacking)")
     v.add_argument("--tmpdir", type=Path, help="where to unpack for the check (needs the store's size free)")
     v.add_argument("--processes", type=int, default=1, help="hashing processes (default 1)")
     v.set_defaults(func=_verify)
 
-    u = sub.add_parser("unpack", help="unpack a release's archive parts into DIR/cohort.zarr (checked: no "
-                                      "member may leave DIR)")
+    u = sub.add_parser(
+        "unpack", help="unpack a release's archive parts into DIR/cohort.zarr (checked: no member may leave DIR)"
+    )
     u.add_argument("release", type=Path, help="the bag folder")
     u.add_argument("--to", type=Path, help="destination folder (default: the current one)")
     u.set_defaults(func=_unpack)
 
-    pz = sub.add_parser("personalize", help="a model fitted to spinopelvic parameters, e.g. personalize --PI 55 "
-                                            "--PT 28 --LL 30 [--out model.inp] (deg / mm; any measured parameter)")
+    pz = sub.add_parser(
+        "personalize",
+        help="a model fitted to spinopelvic parameters, e.g. personalize --PI 55 "
+        "--PT 28 --LL 30 [--out model.inp] (deg / mm; any measured parameter)",
+    )
     pz.add_argument("--out", type=Path, help="write the hex FE model (.inp or .vtu), Jacobian-checked and repaired")
     pz.add_argument("--config", type=Path, default=Path("config/config.yaml"))
     pz.add_argument("--results", type=Path, help="results folder (default: the config's)")
     pz.set_defaults(func=_personalize)
 
-    cs = sub.add_parser("check-store", help="check every shard of a cohort store against its recorded sha256; "
-                                            "--rebuild invalidates bad shards so that snakemake rewrites them")
+    cs = sub.add_parser(
+        "check-store",
+        help="check every shard of a cohort store against its recorded sha256; "
+        "--rebuild invalidates bad shards so that snakemake rewrites them",
+    )
     cs.add_argument("store", type=Path, help="the store (results/cohort.zarr)")
     cs.add_argument("--rebuild", action="store_true", help="remove bad shards and their per-shard records")
     cs.add_argument("--records", type=Path, help="per-shard records folder (default: <store>/../shards)")
     cs.set_defaults(func=_check_store)
 
-    q = sub.add_parser("query", help="model IDs of the virtual cohort with parameters in ranges, "
-                                     "e.g. query --PI 50:60 --PT 25: (bounds inclusive, deg / mm)")
+    q = sub.add_parser(
+        "query",
+        help="model IDs of the virtual cohort with parameters in ranges, "
+        "e.g. query --PI 50:60 --PT 25: (bounds inclusive, deg / mm)",
+    )
     q.add_argument("--config", type=Path, default=Path("config/config.yaml"))
     q.add_argument("--results", type=Path, help="results folder (default: the config's)")
     q.set_defaults(func=_query)

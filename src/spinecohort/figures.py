@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .pca import SSM  # noqa: E402
+from spinecohort.ssm.model import SSM  # noqa: E402
 
 
 def compactness_plot(table: pd.DataFrame, threshold: float, path: str | Path, max_modes: int = 20) -> None:
@@ -50,8 +50,10 @@ def compactness_plot(table: pd.DataFrame, threshold: float, path: str | Path, ma
 def quality_plot(gen: pd.DataFrame, spec: pd.DataFrame, path: str | Path) -> None:
     """Generalization and specificity (mean +/- SD, mm) versus the number of modes."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=150)
-    for ax, df, key, title in ((axes[0], gen, "generalization", "Generalization (leave-one-out)"),
-                               (axes[1], spec, "specificity", "Specificity (random samples)")):
+    for ax, df, key, title in (
+        (axes[0], gen, "generalization", "Generalization (leave-one-out)"),
+        (axes[1], spec, "specificity", "Specificity (random samples)"),
+    ):
         m, mu, sd = df["modes"], df[f"{key}_mm"], df[f"{key}_sd_mm"]
         ax.plot(m, mu, "o-", color="#1f4e79")
         ax.fill_between(m, mu - sd, mu + sd, color="#8fb3d9", alpha=0.5)
@@ -72,9 +74,15 @@ def _polydata(points: np.ndarray, faces: np.ndarray):
     return pv.PolyData(points, cells)
 
 
-def mode_variation_figure(ssm: SSM, faces: np.ndarray, path: str | Path, n_modes: int = 3,
-                          window: tuple[int, int] = (1800, 1200), sds: tuple[float, ...] = (-3.0, 0.0, 3.0),
-                          dpi: int = 150) -> None:
+def mode_variation_figure(
+    ssm: SSM,
+    faces: np.ndarray,
+    path: str | Path,
+    n_modes: int = 3,
+    window: tuple[int, int] = (1800, 1200),
+    sds: tuple[float, ...] = (-3.0, 0.0, 3.0),
+    dpi: int = 150,
+) -> None:
     """Lateral views of the mean + w SD of each of the first ``n_modes`` modes (rows) for w in ``sds``
     (columns), coloured by the distance to the mean (mm), one camera and one colour scale for all panels so
     that shapes and colours compare; a PNG of exactly ``window`` = (width, height) pixels."""
@@ -99,34 +107,61 @@ def mode_variation_figure(ssm: SSM, faces: np.ndarray, path: str | Path, n_modes
     pl.set_background(BACKGROUND)
     mesh = _polydata(shapes[0], faces)
     mesh["distance to mean [mm]"] = dist[0]
-    pl.add_mesh(mesh, scalars="distance to mean [mm]", cmap="viridis", clim=(0.0, vmax), show_scalar_bar=False,
-                smooth_shading=True)
+    pl.add_mesh(
+        mesh,
+        scalars="distance to mean [mm]",
+        cmap="viridis",
+        clim=(0.0, vmax),
+        show_scalar_bar=False,
+        smooth_shading=True,
+    )
     _view_camera(pl, "lateral", focal, scale)
     ev = ssm.explained_variance_ratio
     for i in range(n_modes):
         y0 = title_px + header_px + i * panel[1]
-        fig.text(*_px(fig, label_px / 2, y0 + panel[1] / 2), f"mode {i + 1} ({100 * ev[i]:.1f} % of variance)",
-                 rotation=90, ha="center", va="center", fontsize=9)
-        for j, w in enumerate(sds):
+        fig.text(
+            *_px(fig, label_px / 2, y0 + panel[1] / 2),
+            f"mode {i + 1} ({100 * ev[i]:.1f} % of variance)",
+            rotation=90,
+            ha="center",
+            va="center",
+            fontsize=9,
+        )
+        for j, _w in enumerate(sds):
             k = i * len(sds) + j
             mesh.points = shapes[k]
             mesh["distance to mean [mm]"] = dist[k]
             pl.render()
             _place_image(fig, np.asarray(pl.screenshot(return_img=True))[..., :3], label_px + j * panel[0], y0)
     for j, w in enumerate(sds):
-        fig.text(*_px(fig, label_px + (j + 0.5) * panel[0], title_px + header_px / 2),
-                 "mean" if w == 0 else f"{w:+g} SD", ha="center", va="center", fontsize=10)
+        fig.text(
+            *_px(fig, label_px + (j + 0.5) * panel[0], title_px + header_px / 2),
+            "mean" if w == 0 else f"{w:+g} SD",
+            ha="center",
+            va="center",
+            fontsize=10,
+        )
     pl.close()
     cax = fig.add_axes([(W - 0.6 * cbar_px) / W, 0.15, 0.15 * cbar_px / W, 0.6])
-    fig.colorbar(matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, vmax), "viridis"), cax=cax,
-                 label="distance to the mean shape [mm]")
-    fig.text(*_px(fig, W / 2, title_px / 2), "SSM shape modes (lateral, anterior to the right, common scale)",
-             ha="center", va="center", fontsize=12, weight="bold")
+    fig.colorbar(
+        matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, vmax), "viridis"),
+        cax=cax,
+        label="distance to the mean shape [mm]",
+    )
+    fig.text(
+        *_px(fig, W / 2, title_px / 2),
+        "SSM shape modes (lateral, anterior to the right, common scale)",
+        ha="center",
+        va="center",
+        fontsize=12,
+        weight="bold",
+    )
     _save(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------------------
 # Canvas helpers: every figure is exactly the configured size in pixels
+
 
 def _canvas(size_px: tuple[int, int], dpi: int):
     """A matplotlib figure of exactly ``size_px`` = (width, height) pixels at ``dpi``."""
@@ -198,7 +233,7 @@ def ligament_group(template) -> np.ndarray:
     out = np.full(len(template.ligaments), "", dtype=object)
     for name, idx in template.elsets.items():
         if template.elset_kind[name] == "lig":
-            out[idx] = name[len("LIG_"):]
+            out[idx] = name[len("LIG_") :]
     return out.astype(str)
 
 
@@ -256,8 +291,17 @@ def _framing(points: np.ndarray, view: str, size_px: tuple[int, int], margin: fl
     return (lo + hi) / 2, scale
 
 
-def render_hex_model(template, points: np.ndarray, view: str, size_px: tuple[int, int], section: bool = False,
-                     ligaments: bool = True, edges: bool = False, focal=None, parallel_scale=None) -> np.ndarray:
+def render_hex_model(
+    template,
+    points: np.ndarray,
+    view: str,
+    size_px: tuple[int, int],
+    section: bool = False,
+    ligaments: bool = True,
+    edges: bool = False,
+    focal=None,
+    parallel_scale=None,
+) -> np.ndarray:
     """Off-screen render (H, W, 3 uint8) of a hex model coloured by tissue, its surface parts muted and
     its ligaments as lines coloured by group.
 
@@ -294,8 +338,17 @@ def render_hex_model(template, points: np.ndarray, view: str, size_px: tuple[int
 
     pl = pv.Plotter(off_screen=True, window_size=[int(size_px[0]), int(size_px[1])])
     pl.set_background(BACKGROUND)
-    pl.add_mesh(column, scalars="rgb", rgb=True, show_edges=edges, edge_color="#4d4d4d", line_width=1,
-                ambient=0.25, diffuse=0.75, specular=0.0)
+    pl.add_mesh(
+        column,
+        scalars="rgb",
+        rgb=True,
+        show_edges=edges,
+        edge_color="#4d4d4d",
+        line_width=1,
+        ambient=0.25,
+        diffuse=0.75,
+        specular=0.0,
+    )
     if len(tris):
         surf = pv.PolyData(points, np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
         pl.add_mesh(surf, color=SURFACE_STYLE[1], ambient=0.3, diffuse=0.7, specular=0.0, smooth_shading=True)
@@ -360,8 +413,9 @@ def _disc_detail_camera(template, points: np.ndarray, disc: str) -> tuple[np.nda
     # disc names are <upper><lower> of two level names (e.g. T12L1, L4L5): split before the second letter
     split = next(i for i in range(1, len(disc)) if disc[i].isalpha())
     upper, lower = disc[:split], disc[split:]
-    body = {lv: points[np.unique(template.hexes[template.elsets[f"V_{lv}_CORE"]])].mean(axis=0)
-            for lv in (upper, lower)}
+    body = {
+        lv: points[np.unique(template.hexes[template.elsets[f"V_{lv}_CORE"]])].mean(axis=0) for lv in (upper, lower)
+    }
     disc_hexes = np.concatenate([template.elsets[f"D_{disc}_{t}"] for t in ("NP", "AF", "CEP")])
     disc_nodes = np.unique(template.hexes[disc_hexes])
     focal = points[disc_nodes].mean(axis=0)
@@ -369,9 +423,15 @@ def _disc_detail_camera(template, points: np.ndarray, disc: str) -> tuple[np.nda
     return focal, scale, f"{upper}-{lower}"
 
 
-def part_model_figure(template, points: np.ndarray, path: str | Path, size_px: tuple[int, int] = (2400, 1500),
-                      dpi: int = 150, title: str = "Hexahedral mean model by part", detail_disc: str = "L4L5"
-                      ) -> dict[str, np.ndarray]:
+def part_model_figure(
+    template,
+    points: np.ndarray,
+    path: str | Path,
+    size_px: tuple[int, int] = (2400, 1500),
+    dpi: int = 150,
+    title: str = "Hexahedral mean model by part",
+    detail_disc: str = "L4L5",
+) -> dict[str, np.ndarray]:
     """One hex model in four panels: lateral view, mid-sagittal section, frontal view (one common scale)
     and a close-up of the mid-sagittal section of one disc with its mesh (``detail_disc``, e.g. ``"L4L5"``,
     where the 0.7 mm cartilage endplates become visible); tissues coloured, surface parts muted, ligaments
@@ -391,9 +451,11 @@ def part_model_figure(template, points: np.ndarray, path: str | Path, size_px: t
     focal_f, scale_f = _framing(points, "frontal", main)
     scale = max(scale, scale_f)  # one scale for the three whole-model panels: sizes compare across views
     top = title_px + label_px
-    panels = {"lateral": ("lateral", False, focal, "lateral (from the right)"),
-              "section": ("lateral", True, focal, "mid-sagittal section"),
-              "frontal": ("frontal", False, focal_f, "frontal (from anterior)")}
+    panels = {
+        "lateral": ("lateral", False, focal, "lateral (from the right)"),
+        "section": ("lateral", True, focal, "mid-sagittal section"),
+        "frontal": ("frontal", False, focal_f, "frontal (from anterior)"),
+    }
     renders = {}
     for k, (name, (view, section, f, label)) in enumerate(panels.items()):
         img = render_hex_model(template, points, view, main, section=section, focal=f, parallel_scale=scale)
@@ -404,12 +466,17 @@ def part_model_figure(template, points: np.ndarray, path: str | Path, size_px: t
     # close-up of one disc, and its frame drawn on the section panel
     d_focal, d_scale, d_name = _disc_detail_camera(template, points, detail_disc)
     d_left = 10 + 3 * main[0] + 10
-    renders["detail"] = render_hex_model(template, points, "lateral", detail, section=True, edges=True,
-                                         focal=d_focal, parallel_scale=d_scale)
+    renders["detail"] = render_hex_model(
+        template, points, "lateral", detail, section=True, edges=True, focal=d_focal, parallel_scale=d_scale
+    )
     _place_image(fig, renders["detail"], d_left, top)
-    fig.text(*_px(fig, d_left + detail[0] / 2, title_px + label_px / 2),
-             f"{d_name} close-up of the section (box), with the mesh", ha="center", va="center",
-             fontsize=9)
+    fig.text(
+        *_px(fig, d_left + detail[0] / 2, title_px + label_px / 2),
+        f"{d_name} close-up of the section (box), with the mesh",
+        ha="center",
+        va="center",
+        fontsize=9,
+    )
     half_w, half_h = d_scale * detail[0] / detail[1], d_scale
     c0, r0 = _to_panel_px(d_focal + np.array([0, -half_w, half_h]), "lateral", focal, scale, main)
     c1, r1 = _to_panel_px(d_focal + np.array([0, half_w, -half_h]), "lateral", focal, scale, main)
@@ -420,22 +487,44 @@ def part_model_figure(template, points: np.ndarray, path: str | Path, size_px: t
     bar_mm = _scale_bar_mm(scale)
     bar_px = bar_mm / (2 * scale) * main[1]
     y_bar = top + main[1] - 20
-    fig.add_artist(matplotlib.lines.Line2D([_px(fig, 30, 0)[0], _px(fig, 30 + bar_px, 0)[0]],
-                                           [_px(fig, 0, y_bar)[1]] * 2, color="black", lw=3,
-                                           transform=fig.transFigure))
+    fig.add_artist(
+        matplotlib.lines.Line2D(
+            [_px(fig, 30, 0)[0], _px(fig, 30 + bar_px, 0)[0]],
+            [_px(fig, 0, y_bar)[1]] * 2,
+            color="black",
+            lw=3,
+            transform=fig.transFigure,
+        )
+    )
     fig.text(*_px(fig, 30 + bar_px / 2, y_bar - 8), f"{bar_mm:.0f} mm", ha="center", va="bottom", fontsize=8)
     # legends under the close-up: tissues, then ligament groups
     handles = _part_legend_handles(set(ligament_group(template)))
     n_tissue = len(HEX_PART_STYLE) + 1
     y_leg = _px(fig, 0, top + detail[1] + 20)[1]
     x_leg = _px(fig, d_left, 0)[0]
-    leg = fig.legend(handles=handles[:n_tissue], loc="upper left", bbox_to_anchor=(x_leg, y_leg), fontsize=8,
-                     title="tissues and parts", title_fontsize=9, frameon=False, alignment="left")
+    leg = fig.legend(
+        handles=handles[:n_tissue],
+        loc="upper left",
+        bbox_to_anchor=(x_leg, y_leg),
+        fontsize=8,
+        title="tissues and parts",
+        title_fontsize=9,
+        frameon=False,
+        alignment="left",
+    )
     fig.add_artist(leg)
     fig.canvas.draw()  # the first legend's extent places the second one under it
     y_lig = leg.get_window_extent().y0 / h - 0.01
-    fig.legend(handles=handles[n_tissue:], loc="upper left", bbox_to_anchor=(x_leg, y_lig), fontsize=8,
-               title="ligaments (spring elements), by group", title_fontsize=9, frameon=False, alignment="left")
+    fig.legend(
+        handles=handles[n_tissue:],
+        loc="upper left",
+        bbox_to_anchor=(x_leg, y_lig),
+        fontsize=8,
+        title="ligaments (spring elements), by group",
+        title_fontsize=9,
+        frameon=False,
+        alignment="left",
+    )
     fig.text(*_px(fig, w / 2, title_px / 2), title, ha="center", va="center", fontsize=13, weight="bold")
     _save(fig, path)
     return renders
@@ -447,9 +536,16 @@ def _scale_bar_mm(parallel_scale: float) -> float:
     return float(min((50, 100, 200, 20, 10), key=lambda v: abs(np.log(v / target))))
 
 
-def personalized_gallery_figure(hex_ssm, template, table: pd.DataFrame, path: str | Path,
-                                size_px: tuple[int, int] = (3000, 1100), dpi: int = 150, n_models: int = 10,
-                                method: str = "fit") -> list[str]:
+def personalized_gallery_figure(
+    hex_ssm,
+    template,
+    table: pd.DataFrame,
+    path: str | Path,
+    size_px: tuple[int, int] = (3000, 1100),
+    dpi: int = 150,
+    n_models: int = 10,
+    method: str = "fit",
+) -> list[str]:
     """The first ``n_models`` personalized hex models side by side, lateral view, one camera for all (so
     posture and size compare), each labelled with its patient ID (the seed's Figure 9).
 
@@ -465,14 +561,15 @@ def personalized_gallery_figure(hex_ssm, template, table: pd.DataFrame, path: st
     if not wcols:
         raise ValueError("the personalization table has no mode-weight columns b1..bk")
     if len(wcols) > hex_ssm.fields.shape[0]:
-        raise ValueError(f"the personalization table has {len(wcols)} weights, the hex SSM "
-                         f"{hex_ssm.fields.shape[0]} modes")
+        raise ValueError(
+            f"the personalization table has {len(wcols)} weights, the hex SSM {hex_ssm.fields.shape[0]} modes"
+        )
     weights = rows[wcols].to_numpy(float)
     if not np.all(np.isfinite(weights)):
         raise ValueError("the personalization table has missing or non-finite weights")
     points = hex_ssm.sample(weights)  # (n, n_nodes, 3) mm
     if "posture_deg" in rows.columns:  # the fitted sagittal posture, turned as in the personalized decks
-        from .personalize import pose
+        from spinecohort.personalize import pose
 
         points = pose(points, rows["posture_deg"].fillna(0.0).to_numpy(float))
     ids = rows["ID"].astype(str).tolist()
@@ -486,14 +583,28 @@ def personalized_gallery_figure(hex_ssm, template, table: pd.DataFrame, path: st
         img = render_hex_model(template, pts, "lateral", panel, ligaments=False, focal=focal, parallel_scale=scale)
         left = 10 + k * panel[0]
         _place_image(fig, img, left, title_px + label_px)
-        fig.text(*_px(fig, left + panel[0] / 2, title_px + label_px / 2), pid, ha="center", va="center",
-                 fontsize=11, weight="bold")
-    fig.text(*_px(fig, w / 2, title_px / 2),
-             f"Personalized hexahedral models of the first {len(ids)} patients (lateral, anterior to the right, "
-             f"common scale; {scale * 2:.0f} mm visible height)", ha="center", va="center", fontsize=12)
+        fig.text(
+            *_px(fig, left + panel[0] / 2, title_px + label_px / 2),
+            pid,
+            ha="center",
+            va="center",
+            fontsize=11,
+            weight="bold",
+        )
+    fig.text(
+        *_px(fig, w / 2, title_px / 2),
+        f"Personalized hexahedral models of the first {len(ids)} patients (lateral, anterior to the right, "
+        f"common scale; {scale * 2:.0f} mm visible height)",
+        ha="center",
+        va="center",
+        fontsize=12,
+    )
     # only what the outside of a model shows: the shell hides the core, the AF the nucleus
-    visible = [hd for hd in _part_legend_handles(ligament_groups=())
-               if hd.get_label() in (HEX_PART_STYLE["SHELL"][0], HEX_PART_STYLE["AF"][0], SURFACE_STYLE[0])]
+    visible = [
+        hd
+        for hd in _part_legend_handles(ligament_groups=())
+        if hd.get_label() in (HEX_PART_STYLE["SHELL"][0], HEX_PART_STYLE["AF"][0], SURFACE_STYLE[0])
+    ]
     fig.legend(handles=visible, loc="lower center", ncol=3, fontsize=8, frameon=False, bbox_to_anchor=(0.5, 0.0))
     _save(fig, path)
     return ids
@@ -503,30 +614,50 @@ def personalized_gallery_figure(hex_ssm, template, table: pd.DataFrame, path: st
 # Parameter histograms of the virtual cohort with the patients and the inclusion thresholds
 
 #: config key of an inclusion criterion (``synthetic.criteria``) -> the parameter column it bounds from below
-CRITERIA_COLUMNS: dict[str, str] = {"PI_minus_LL_min_deg": "PI_minus_LL", "PT_min_deg": "PT",
-                                    "SVA_T1_min_mm": "SVA_T1"}
+CRITERIA_COLUMNS: dict[str, str] = {"PI_minus_LL_min_deg": "PI_minus_LL", "PT_min_deg": "PT", "SVA_T1_min_mm": "SVA_T1"}
 
 PARAMETER_LABELS: dict[str, str] = {
-    "PI": "pelvic incidence PI", "PT": "pelvic tilt PT", "SS": "sacral slope SS", "LL": "lumbar lordosis LL (L1-S1)",
-    "LL_L4S1": "lower lumbar lordosis L4-S1", "LL_L1L5": "lordosis L1-L5", "PI_minus_LL": "PI - LL mismatch",
-    "TPA": "T1 pelvic angle TPA", "T1SPI": "T1 spinopelvic inclination", "GT": "global tilt GT",
-    "TK_T1T12": "kyphosis T1-T12", "TK_T4T12": "thoracic kyphosis T4-T12", "TK_T5T12": "kyphosis T5-T12",
-    "Cobb": "main coronal Cobb angle", "SVA_T1": "T1 sagittal offset (SVA proxy)",
-    "SVA_C7est": "SVA, C7 estimated", "RPV": "relative pelvic version RPV", "RLL": "relative lumbar lordosis RLL",
-    "RSA": "relative spinopelvic alignment RSA", "LDI": "lordosis distribution index LDI",
-    "GAP_assumed_age": "GAP score (assumed age)", "GAP_noage": "GAP score without age",
+    "PI": "pelvic incidence PI",
+    "PT": "pelvic tilt PT",
+    "SS": "sacral slope SS",
+    "LL": "lumbar lordosis LL (L1-S1)",
+    "LL_L4S1": "lower lumbar lordosis L4-S1",
+    "LL_L1L5": "lordosis L1-L5",
+    "PI_minus_LL": "PI - LL mismatch",
+    "TPA": "T1 pelvic angle TPA",
+    "T1SPI": "T1 spinopelvic inclination",
+    "GT": "global tilt GT",
+    "TK_T1T12": "kyphosis T1-T12",
+    "TK_T4T12": "thoracic kyphosis T4-T12",
+    "TK_T5T12": "kyphosis T5-T12",
+    "Cobb": "main coronal Cobb angle",
+    "SVA_T1": "T1 sagittal offset (SVA proxy)",
+    "SVA_C7est": "SVA, C7 estimated",
+    "RPV": "relative pelvic version RPV",
+    "RLL": "relative lumbar lordosis RLL",
+    "RSA": "relative spinopelvic alignment RSA",
+    "LDI": "lordosis distribution index LDI",
+    "GAP_assumed_age": "GAP score (assumed age)",
+    "GAP_noage": "GAP score without age",
 }
 
 
-def parameter_histograms_figure(virtual: pd.DataFrame, patients: pd.DataFrame, criteria: dict[str, float],
-                                parameters: list[str], path: str | Path, size_px: tuple[int, int] = (2000, 1400),
-                                dpi: int = 150, units: dict[str, str] | None = None) -> pd.DataFrame:
+def parameter_histograms_figure(
+    virtual: pd.DataFrame,
+    patients: pd.DataFrame,
+    criteria: dict[str, float],
+    parameters: list[str],
+    path: str | Path,
+    size_px: tuple[int, int] = (2000, 1400),
+    dpi: int = 150,
+    units: dict[str, str] | None = None,
+) -> pd.DataFrame:
     """Histogram per parameter of the virtual cohort (density) with the patients' histogram overlaid and the
     inclusion thresholds (``criteria``: keys of ``CRITERIA_COLUMNS``, lower bounds) marked.
 
     virtual, patients: parameter tables (column names as in ``measure``, e.g. ``PI``, ``PI_minus_LL``).
     Returns the share (%) of virtual models and patients above each threshold (one row per criterion)."""
-    from .measure import UNITS
+    from spinecohort.measure.spinopelvic import UNITS
 
     units = UNITS if units is None else units
     for name, table in (("virtual cohort", virtual), ("patients", patients)):
@@ -554,18 +685,21 @@ def parameter_histograms_figure(virtual: pd.DataFrame, patients: pd.DataFrame, c
         pad = 0.03 * (hi - lo or 1.0)
         edges = np.linspace(lo - pad, hi + pad, 41)
         ax.hist(v, bins=edges, density=True, color="#8fb3d9", label=f"virtual models (n = {v.size:,})")
-        ax.hist(q, bins=edges[::4], density=True, histtype="step", color="#1f2d3d", lw=1.6,
-                label=f"patients (n = {q.size})")
+        ax.hist(
+            q, bins=edges[::4], density=True, histtype="step", color="#1f2d3d", lw=1.6, label=f"patients (n = {q.size})"
+        )
         unit = units.get(p, "")
         if p in thresholds:
             t = thresholds[p]
             ax.axvspan(edges[0], t, color="#c0392b", alpha=0.08, lw=0)
             ax.axvline(t, color="#c0392b", ls="--", lw=1.4)
             sv, sq = 100 * np.mean(v > t) if v.size else np.nan, 100 * np.mean(q > t) if q.size else np.nan
-            shares.append({"parameter": p, "threshold": t, "unit": unit, "pct_virtual_above": sv,
-                           "pct_patients_above": sq})
-            ax.set_title(f"inclusion > {t:g} {unit}: virtual {sv:.0f} %, patients {sq:.0f} %", fontsize=8,
-                         color="#c0392b")
+            shares.append(
+                {"parameter": p, "threshold": t, "unit": unit, "pct_virtual_above": sv, "pct_patients_above": sq}
+            )
+            ax.set_title(
+                f"inclusion > {t:g} {unit}: virtual {sv:.0f} %, patients {sq:.0f} %", fontsize=8, color="#c0392b"
+            )
         ax.set_xlim(edges[0], edges[-1])
         ax.set_xlabel(f"{PARAMETER_LABELS.get(p, p)} [{unit}]" if unit else PARAMETER_LABELS.get(p, p), fontsize=8)
         ax.set_ylabel(f"density [1/{unit}]" if unit else "density", fontsize=8)
@@ -581,9 +715,11 @@ def parameter_histograms_figure(virtual: pd.DataFrame, patients: pd.DataFrame, c
     for p, t in thresholds.items():
         all_in &= virtual[p].to_numpy(float) > t
     crit = ", ".join(f"{p.replace('_minus_', ' - ')} > {t:g} {units.get(p, '')}" for p, t in thresholds.items())
-    fig.suptitle(f"Spinopelvic parameters of the virtual cohort and the patients\n"
-                 f"{100 * all_in.mean():.1f} % of the virtual models meet every inclusion criterion ({crit})",
-                 fontsize=11)
+    fig.suptitle(
+        f"Spinopelvic parameters of the virtual cohort and the patients\n"
+        f"{100 * all_in.mean():.1f} % of the virtual models meet every inclusion criterion ({crit})",
+        fontsize=11,
+    )
     fig.tight_layout(rect=(0, 0.04, 1, 0.95))
     _save(fig, path)
     return pd.DataFrame(shares)
@@ -592,8 +728,14 @@ def parameter_histograms_figure(virtual: pd.DataFrame, patients: pd.DataFrame, c
 # ----------------------------------------------------------------------------------------------------------
 # Mesh-quality summary of the virtual cohort and the mean model
 
-def quality_summary_figure(quality: pd.DataFrame, table3: pd.DataFrame, path: str | Path,
-                           size_px: tuple[int, int] = (1800, 1300), dpi: int = 150) -> None:
+
+def quality_summary_figure(
+    quality: pd.DataFrame,
+    table3: pd.DataFrame,
+    path: str | Path,
+    size_px: tuple[int, int] = (1800, 1300),
+    dpi: int = 150,
+) -> None:
     """Four panels: the per-model minimum scaled Jacobian before and after repair; its distribution per
     tissue (after repair); the share of models with inverted hexes before repair, repaired, and left; and the
     seed's Table 3 indicators of the mean model per tissue.
@@ -603,8 +745,14 @@ def quality_summary_figure(quality: pd.DataFrame, table3: pd.DataFrame, path: st
     need = {"min_sj_before", "min_sj_after", "invalid_before", "invalid_after", "repaired"}
     if need - set(quality.columns):
         raise ValueError(f"the quality table lacks columns {sorted(need - set(quality.columns))}")
-    need3 = {"part", "pct_errors", "pct_warnings", "pct_edge_ratio_gt_10", "pct_max_face_angle_gt_160",
-             "nodal_jacobian_ratio_min"}
+    need3 = {
+        "part",
+        "pct_errors",
+        "pct_warnings",
+        "pct_edge_ratio_gt_10",
+        "pct_max_face_angle_gt_160",
+        "nodal_jacobian_ratio_min",
+    }
     if need3 - set(table3.columns):
         raise ValueError(f"the Table 3 summary lacks columns {sorted(need3 - set(table3.columns))}")
     n = len(quality)
@@ -624,8 +772,11 @@ def quality_summary_figure(quality: pd.DataFrame, table3: pd.DataFrame, path: st
 
     tissue_cols = [col for col in quality.columns if col.startswith("min_sj_") and col not in need]
     if tissue_cols:
-        b.boxplot([quality[col].dropna().to_numpy() for col in tissue_cols], whis=(0, 100),
-                  tick_labels=[col[len("min_sj_"):] for col in tissue_cols])
+        b.boxplot(
+            [quality[col].dropna().to_numpy() for col in tissue_cols],
+            whis=(0, 100),
+            tick_labels=[col[len("min_sj_") :] for col in tissue_cols],
+        )
         b.axhline(0.0, color="#c0392b", lw=1.2)
         b.axhline(0.2, color="#e67e22", ls="--", lw=1.2)
     b.set_xlabel("tissue")
@@ -636,22 +787,35 @@ def quality_summary_figure(quality: pd.DataFrame, table3: pd.DataFrame, path: st
     repaired = int(((quality["invalid_before"] > 0) & (quality["invalid_after"] == 0)).sum())
     left = int((quality["invalid_after"] > 0).sum())
     counts = [before, repaired, left]
-    bars = c.bar(["inverted hexes\nbefore repair", "repaired", "inverted hexes\nafter repair"],
-                 [100 * k / max(n, 1) for k in counts], color=["#8fb3d9", "#2ca25f", "#c0392b"])
+    bars = c.bar(
+        ["inverted hexes\nbefore repair", "repaired", "inverted hexes\nafter repair"],
+        [100 * k / max(n, 1) for k in counts],
+        color=["#8fb3d9", "#2ca25f", "#c0392b"],
+    )
     for bar, k in zip(bars, counts):
-        c.text(bar.get_x() + bar.get_width() / 2, bar.get_height(), f"{k:,} model{'s' if k != 1 else ''}",
-               ha="center", va="bottom",
-               fontsize=8)
+        c.text(
+            bar.get_x() + bar.get_width() / 2,
+            bar.get_height(),
+            f"{k:,} model{'s' if k != 1 else ''}",
+            ha="center",
+            va="bottom",
+            fontsize=8,
+        )
     n_before, n_after = int(quality["invalid_before"].sum()), int(quality["invalid_after"].sum())
-    left_txt = (f"inverted hexes: {n_before:,} before, {n_after:,} after repair" if n_before
-                else "no inverted hex in any model")
+    left_txt = (
+        f"inverted hexes: {n_before:,} before, {n_after:,} after repair" if n_before else "no inverted hex in any model"
+    )
     c.set_ylabel("share of the virtual models [%]")
     c.set_ylim(0, max(1.0, 1.25 * max(100 * k / max(n, 1) for k in counts)))
     c.set_title(f"Models with inverted hexes ({left_txt})", fontsize=10)
 
     t3 = table3.set_index("part")
-    cols = [("pct_errors", "errors (sJ <= 0)"), ("pct_warnings", "warnings (sJ < 0.2 or face angle)"),
-            ("pct_edge_ratio_gt_10", "edge ratio > 10"), ("pct_max_face_angle_gt_160", "face angle > 160 deg")]
+    cols = [
+        ("pct_errors", "errors (sJ <= 0)"),
+        ("pct_warnings", "warnings (sJ < 0.2 or face angle)"),
+        ("pct_edge_ratio_gt_10", "edge ratio > 10"),
+        ("pct_max_face_angle_gt_160", "face angle > 160 deg"),
+    ]
     x = np.arange(len(t3))
     width = 0.8 / len(cols)
     for k, (col, label) in enumerate(cols):

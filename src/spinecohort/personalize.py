@@ -35,10 +35,10 @@ import pandas as pd
 from scipy.optimize import least_squares
 from scipy.stats import qmc
 
-from .landmarks import Landmarks
-from .measure import UNITS, measure
-from .pca import SSM
-from .procrustes import apply_transform, kabsch
+from spinecohort.cohort.landmarks import Landmarks
+from spinecohort.measure.spinopelvic import UNITS, measure
+from spinecohort.ssm.model import SSM
+from spinecohort.ssm.procrustes import apply_transform, kabsch
 
 log = logging.getLogger(__name__)
 
@@ -51,14 +51,17 @@ METHODS = ("fit", "projection")
 
 # ------------------------------------------------------------------------------------------- targets
 
+
 def fittable_parameters() -> list[str]:
     """Numeric, continuous outputs of :func:`measure.measure` a target may name (GAP points excluded)."""
-    return [c for c, u in UNITS.items() if u in ("deg", "mm", "%") and c != "PI_identity_err"
-            and c != "endplate_rms_max"]
+    return [
+        c for c, u in UNITS.items() if u in ("deg", "mm", "%") and c != "PI_identity_err" and c != "endplate_rms_max"
+    ]
 
 
-def complete_pelvic_targets(targets: dict[str, float], tol_deg: float = PELVIC_IDENTITY_TOL_DEG,
-                            source: str = "targets") -> dict[str, float]:
+def complete_pelvic_targets(
+    targets: dict[str, float], tol_deg: float = PELVIC_IDENTITY_TOL_DEG, source: str = "targets"
+) -> dict[str, float]:
     """Targets with the pelvic identity PI = PT + SS enforced.
 
     Two of PI, PT, SS given: the third is derived (a model cannot have any other value).  All three given:
@@ -70,8 +73,9 @@ def complete_pelvic_targets(targets: dict[str, float], tol_deg: float = PELVIC_I
     out = {}
     for k, v in targets.items():
         if k not in allowed:
-            raise ValueError(f"{source}: '{k}' is not a parameter that can be fitted; choose from "
-                             f"{', '.join(sorted(allowed))}")
+            raise ValueError(
+                f"{source}: '{k}' is not a parameter that can be fitted; choose from {', '.join(sorted(allowed))}"
+            )
         if v is None or not np.isfinite(float(v)):
             raise ValueError(f"{source}: target {k} = {v} is not a finite number")
         out[k] = float(v)
@@ -79,8 +83,10 @@ def complete_pelvic_targets(targets: dict[str, float], tol_deg: float = PELVIC_I
     if len(have) == 3:
         gap = out["PI"] - out["PT"] - out["SS"]
         if abs(gap) > tol_deg:
-            raise ValueError(f"{source}: PI ({out['PI']:g}) must equal PT + SS ({out['PT']:g} + {out['SS']:g} = "
-                             f"{out['PT'] + out['SS']:g}) within {tol_deg:g} deg; give two of the three")
+            raise ValueError(
+                f"{source}: PI ({out['PI']:g}) must equal PT + SS ({out['PT']:g} + {out['SS']:g} = "
+                f"{out['PT'] + out['SS']:g}) within {tol_deg:g} deg; give two of the three"
+            )
     elif len(have) == 2:
         if "PI" not in out:
             out["PI"] = out["PT"] + out["SS"]
@@ -93,10 +99,17 @@ def complete_pelvic_targets(targets: dict[str, float], tol_deg: float = PELVIC_I
 
 # ------------------------------------------------------------------------------- measurement function
 
+
 def landmark_vertices(landmarks: Landmarks) -> np.ndarray:
     """Sorted indices of every vertex :func:`measure.measure` reads (endplates, rims, femoral heads, symphysis)."""
-    sets = [landmarks.endplate_sup, landmarks.endplate_inf, landmarks.rim_sup, landmarks.rim_inf,
-            landmarks.femoral_head, {"": landmarks.pubic_symphysis}]
+    sets = [
+        landmarks.endplate_sup,
+        landmarks.endplate_inf,
+        landmarks.rim_sup,
+        landmarks.rim_inf,
+        landmarks.femoral_head,
+        {"": landmarks.pubic_symphysis},
+    ]
     return np.unique(np.concatenate([np.asarray(v).ravel() for s in sets for v in s.values()]))
 
 
@@ -118,14 +131,16 @@ def restrict_landmarks(landmarks: Landmarks, vertices: np.ndarray) -> Landmarks:
         return pos[vertices[pos] == idx]
 
     return Landmarks(
-        part=landmarks.part[vertices], part_names=landmarks.part_names,
+        part=landmarks.part[vertices],
+        part_names=landmarks.part_names,
         endplate_sup={k: remap(v) for k, v in landmarks.endplate_sup.items()},
         endplate_inf={k: remap(v) for k, v in landmarks.endplate_inf.items()},
         rim_sup={k: remap(v) for k, v in landmarks.rim_sup.items()},
         rim_inf={k: remap(v) for k, v in landmarks.rim_inf.items()},
         femoral_head={k: remap(v) for k, v in landmarks.femoral_head.items()},
         body={k: inside(v) for k, v in landmarks.body.items()},
-        pubic_symphysis=remap(landmarks.pubic_symphysis), meta=dict(landmarks.meta),
+        pubic_symphysis=remap(landmarks.pubic_symphysis),
+        meta=dict(landmarks.meta),
     )
 
 
@@ -163,14 +178,20 @@ class ParameterFunction:
     evaluations: int = 0
 
     @classmethod
-    def from_ssm(cls, ssm: SSM, landmarks: Landmarks, n_modes: int, posture: bool = False,
-                 **measure_kw) -> "ParameterFunction":
+    def from_ssm(
+        cls, ssm: SSM, landmarks: Landmarks, n_modes: int, posture: bool = False, **measure_kw
+    ) -> ParameterFunction:
         if not 1 <= n_modes <= ssm.n_modes:
             raise ValueError(f"n_modes must be between 1 and the SSM's {ssm.n_modes} modes, got {n_modes}")
         landmarks.validate(ssm.mean.shape[0], "personalize landmarks")
         idx = landmark_vertices(landmarks)
-        return cls(ssm.mean[idx], ssm.deformation_fields(n_modes)[:, idx], restrict_landmarks(landmarks, idx),
-                   posture, dict(measure_kw))
+        return cls(
+            ssm.mean[idx],
+            ssm.deformation_fields(n_modes)[:, idx],
+            restrict_landmarks(landmarks, idx),
+            posture,
+            dict(measure_kw),
+        )
 
     @property
     def n_modes(self) -> int:
@@ -182,7 +203,7 @@ class ParameterFunction:
 
     def points(self, x: np.ndarray) -> np.ndarray:
         x = np.atleast_2d(np.asarray(x, dtype=float))
-        pts = self.mean + np.tensordot(x[:, :self.n_modes], self.fields, axes=(1, 0))
+        pts = self.mean + np.tensordot(x[:, : self.n_modes], self.fields, axes=(1, 0))
         return pose(pts, x[:, -1]) if self.posture else pts
 
     def table(self, x: np.ndarray) -> pd.DataFrame:
@@ -197,6 +218,7 @@ class ParameterFunction:
 
 
 # -------------------------------------------------------------------------------------------- surrogate
+
 
 def _quadratic_features(x: np.ndarray) -> np.ndarray:
     """[1, x_i, x_i x_j (i <= j)] for variables (B, n) -> (B, 1 + n + n(n+1)/2)."""
@@ -221,13 +243,14 @@ class QuadraticSurrogate:
         n = self.n_vars
         h = np.zeros((len(self.parameters), n, n))
         iu = np.triu_indices(n)
-        h[:, iu[0], iu[1]] = self.coef[1 + n:].T
+        h[:, iu[0], iu[1]] = self.coef[1 + n :].T
         # d/dx (x^T H x) with H upper triangular = (H + H^T) x
-        return self.coef[1:1 + n].T + np.einsum("pij,j->pi", h + h.transpose(0, 2, 1), x)
+        return self.coef[1 : 1 + n].T + np.einsum("pij,j->pi", h + h.transpose(0, 2, 1), x)
 
 
-def fit_surrogate(fn: ParameterFunction, parameters: list[str], half_width: np.ndarray, n_samples: int,
-                  seed: int = 0) -> tuple[QuadraticSurrogate, np.ndarray, np.ndarray]:
+def fit_surrogate(
+    fn: ParameterFunction, parameters: list[str], half_width: np.ndarray, n_samples: int, seed: int = 0
+) -> tuple[QuadraticSurrogate, np.ndarray, np.ndarray]:
     """Quadratic surrogate of ``parameters`` from ``n_samples`` scrambled-Sobol models in the box
     ``[-half_width, half_width]`` (n_vars,).
 
@@ -257,12 +280,14 @@ def fit_surrogate(fn: ParameterFunction, parameters: list[str], half_width: np.n
     rms = np.sqrt(np.mean((feat[:n_test] @ coef - y[:n_test]) ** 2, axis=0))
     coef, *_ = np.linalg.lstsq(feat, y, rcond=None)
     if n_samples - len(x):
-        log.info("surrogate: %d of %d sampled models left out (frame flipped or not finite)", n_samples - len(x),
-                 n_samples)
+        log.info(
+            "surrogate: %d of %d sampled models left out (frame flipped or not finite)", n_samples - len(x), n_samples
+        )
     return QuadraticSurrogate(list(parameters), coef, n, {p: float(e) for p, e in zip(parameters, rms)}), x, y
 
 
 # ------------------------------------------------------------------------------------------------ fit
+
 
 @dataclass
 class FitResult:
@@ -282,17 +307,29 @@ class PersonalizationModel:
     posture variable); prior: residual per SD of weight (a tie-breaker towards the mean).
     """
 
-    def __init__(self, fn: ParameterFunction, parameters: list[str], weights: dict[str, float] | None = None,
-                 bound_sd: float = 3.0, prior: float = 0.05, surrogate_samples: int = 1024, seed: int = 0,
-                 posture_deg: float = 0.0, fd_step: float = 1e-3):
+    def __init__(
+        self,
+        fn: ParameterFunction,
+        parameters: list[str],
+        weights: dict[str, float] | None = None,
+        bound_sd: float = 3.0,
+        prior: float = 0.05,
+        surrogate_samples: int = 1024,
+        seed: int = 0,
+        posture_deg: float = 0.0,
+        fd_step: float = 1e-3,
+    ):
         missing = [p for p in CORE_PARAMETERS if p not in parameters]
         if missing:
-            raise ValueError(f"personalize: the fitted parameters must include {', '.join(CORE_PARAMETERS)}; "
-                             f"missing {', '.join(missing)}")
+            raise ValueError(
+                f"personalize: the fitted parameters must include {', '.join(CORE_PARAMETERS)}; "
+                f"missing {', '.join(missing)}"
+            )
         unknown = sorted(set(parameters) - set(fittable_parameters()))
         if unknown:
-            raise ValueError(f"personalize: {', '.join(unknown)} cannot be fitted; choose from "
-                             f"{', '.join(fittable_parameters())}")
+            raise ValueError(
+                f"personalize: {', '.join(unknown)} cannot be fitted; choose from {', '.join(fittable_parameters())}"
+            )
         weights = dict(weights or {})
         extra = sorted(set(weights) - set(parameters))
         if extra:
@@ -313,18 +350,25 @@ class PersonalizationModel:
         self.prior_diag = np.r_[np.full(k, float(prior)), [0.0] * fn.posture]
         self.fd_step = float(fd_step)
         t0 = time.perf_counter()
-        self.surrogate, self.samples_x, self.samples_y = fit_surrogate(fn, self.parameters, self.half_width,
-                                                                       surrogate_samples, seed)
-        log.info("surrogate: %d models in %.2f s; held-out RMS error %s", len(self.samples_x),
-                 time.perf_counter() - t0, {p: round(e, 3) for p, e in self.surrogate.rms_error.items()})
+        self.surrogate, self.samples_x, self.samples_y = fit_surrogate(
+            fn, self.parameters, self.half_width, surrogate_samples, seed
+        )
+        log.info(
+            "surrogate: %d models in %.2f s; held-out RMS error %s",
+            len(self.samples_x),
+            time.perf_counter() - t0,
+            {p: round(e, 3) for p, e in self.surrogate.rms_error.items()},
+        )
 
     def fit(self, targets: dict[str, float]) -> FitResult:
         """Variables within the box whose measured model best matches ``targets`` (parameter -> deg / mm)."""
         targets = complete_pelvic_targets(targets)
         unknown = sorted(set(targets) - set(self.parameters))
         if unknown:
-            raise ValueError(f"personalize: {', '.join(unknown)} not among the fitted parameters "
-                             f"({', '.join(self.parameters)}); add them to personalize.parameters")
+            raise ValueError(
+                f"personalize: {', '.join(unknown)} not among the fitted parameters "
+                f"({', '.join(self.parameters)}); add them to personalize.parameters"
+            )
         t = np.array([targets.get(p, np.nan) for p in self.parameters])
         use = np.isfinite(t)
         if not use.any():
@@ -343,8 +387,9 @@ class PersonalizationModel:
         # surrogate, then the candidate with the lowest true misfit is refined on the real measurement
         cost_samples = np.sum((om * (self.samples_y[:, use] - tt)) ** 2, axis=1)
         starts = [np.zeros(n), self.samples_x[int(np.argmin(cost_samples))]]
-        cands = np.array([least_squares(r_sur, x0, jac=j_sur, bounds=(lo, hi), method="trf").x for x0 in starts]
-                         + starts)
+        cands = np.array(
+            [least_squares(r_sur, x0, jac=j_sur, bounds=(lo, hi), method="trf").x for x0 in starts] + starts
+        )
         true = self.fn(cands, self.parameters)[:, use]
         cost = np.sum((om * (true - tt)) ** 2, axis=1) + np.sum((pd_ * cands) ** 2, axis=1)
         x0 = cands[int(np.argmin(cost))]
@@ -360,7 +405,7 @@ class PersonalizationModel:
                 hp, hm = np.minimum(step, hi - x), np.minimum(step, x - lo)
                 y = self.fn(np.vstack([x, x + np.diag(hp), x - np.diag(hm)]), self.parameters)[:, use]
                 cache.clear()
-                cache[key] = (y[0], (y[1:1 + n] - y[1 + n:]).T / np.maximum(hp + hm, 1e-12))
+                cache[key] = (y[0], (y[1 : 1 + n] - y[1 + n :]).T / np.maximum(hp + hm, 1e-12))
             return cache[key]
 
         def r_true(x):
@@ -369,18 +414,32 @@ class PersonalizationModel:
         def j_true(x):
             return np.r_[om[:, None] * evaluate(x)[1], np.diag(pd_)]
 
-        res = least_squares(r_true, np.clip(x0, lo, hi), jac=j_true, bounds=(lo, hi), method="trf",
-                            xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=50)
+        res = least_squares(
+            r_true,
+            np.clip(x0, lo, hi),
+            jac=j_true,
+            bounds=(lo, hi),
+            method="trf",
+            xtol=1e-8,
+            ftol=1e-10,
+            gtol=1e-8,
+            max_nfev=50,
+        )
         x = res.x
         achieved = self.fn.table(x[None]).iloc[0]
         k = self.fn.n_modes
-        return FitResult(x[:k].copy(), float(x[k]) if self.fn.posture else 0.0,
-                         {p: float(achieved[p]) for p in self.parameters},
-                         float(np.sum((om * (evaluate(x)[0] - tt)) ** 2)), self.fn.evaluations - n0,
-                         int(np.sum(np.abs(x[:k]) >= self.bound_sd * (1 - 1e-9))))
+        return FitResult(
+            x[:k].copy(),
+            float(x[k]) if self.fn.posture else 0.0,
+            {p: float(achieved[p]) for p in self.parameters},
+            float(np.sum((om * (evaluate(x)[0] - tt)) ** 2)),
+            self.fn.evaluations - n0,
+            int(np.sum(np.abs(x[:k]) >= self.bound_sd * (1 - 1e-9))),
+        )
 
 
 # ----------------------------------------------------------------------------------------- projection
+
 
 def project_shapes(ssm: SSM, shapes: np.ndarray, n_modes: int, bound_sd: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares mode weights (B, k) in SD of GPA-aligned shapes (B, N, 3) mm, clipped to ±bound_sd.
@@ -405,11 +464,16 @@ def shape_distances(model: np.ndarray, target: np.ndarray) -> dict[str, np.ndarr
     d_placed = np.linalg.norm(model - target, axis=2)
     r, s, t = kabsch(model, target)
     d_rigid = np.linalg.norm(apply_transform(model, r, s, t) - target, axis=2)
-    return {"dist_mean_mm": d_rigid.mean(1), "dist_max_mm": d_rigid.max(1),
-            "dist_placed_mean_mm": d_placed.mean(1), "dist_placed_max_mm": d_placed.max(1)}
+    return {
+        "dist_mean_mm": d_rigid.mean(1),
+        "dist_max_mm": d_rigid.max(1),
+        "dist_placed_mean_mm": d_placed.mean(1),
+        "dist_placed_max_mm": d_placed.max(1),
+    }
 
 
 # ------------------------------------------------------------------------------------- whole cohort
+
 
 @dataclass
 class Settings:
@@ -425,22 +489,34 @@ class Settings:
     seed: int = 0
 
     @classmethod
-    def from_config(cls, block: dict, grid_modes: int) -> "Settings":
+    def from_config(cls, block: dict, grid_modes: int) -> Settings:
         p = dict(block)
         n = p.pop("n_modes") or grid_modes
         if n > grid_modes:
-            raise ValueError(f"personalize.n_modes ({n}) exceeds grid.n_modes ({grid_modes}): the hex SSM has "
-                             f"fields for {grid_modes} modes only")
+            raise ValueError(
+                f"personalize.n_modes ({n}) exceeds grid.n_modes ({grid_modes}): the hex SSM has "
+                f"fields for {grid_modes} modes only"
+            )
         targets = p.pop("targets")
         return cls(parameters=list(targets), weights=dict(targets), n_modes=int(n), **p)
 
 
-def build_model(ssm: SSM, landmarks: Landmarks, settings: Settings, measure_kw: dict | None = None
-                ) -> PersonalizationModel:
-    fn = ParameterFunction.from_ssm(ssm, landmarks, settings.n_modes, posture=settings.posture_deg > 0,
-                                    **(measure_kw or {}))
-    return PersonalizationModel(fn, settings.parameters, settings.weights, settings.bound_sd, settings.prior,
-                                settings.surrogate_samples, settings.seed, settings.posture_deg)
+def build_model(
+    ssm: SSM, landmarks: Landmarks, settings: Settings, measure_kw: dict | None = None
+) -> PersonalizationModel:
+    fn = ParameterFunction.from_ssm(
+        ssm, landmarks, settings.n_modes, posture=settings.posture_deg > 0, **(measure_kw or {})
+    )
+    return PersonalizationModel(
+        fn,
+        settings.parameters,
+        settings.weights,
+        settings.bound_sd,
+        settings.prior,
+        settings.surrogate_samples,
+        settings.seed,
+        settings.posture_deg,
+    )
 
 
 def model_shapes(ssm: SSM, weights: np.ndarray, posture_deg: np.ndarray) -> np.ndarray:
@@ -448,8 +524,15 @@ def model_shapes(ssm: SSM, weights: np.ndarray, posture_deg: np.ndarray) -> np.n
     return pose(ssm.sample(np.atleast_2d(weights)), np.asarray(posture_deg, dtype=float))
 
 
-def personalize_cohort(ssm: SSM, landmarks: Landmarks, ids: list[str], targets: pd.DataFrame, aligned: np.ndarray,
-                       settings: Settings, measure_kw: dict | None = None) -> tuple[pd.DataFrame, dict]:
+def personalize_cohort(
+    ssm: SSM,
+    landmarks: Landmarks,
+    ids: list[str],
+    targets: pd.DataFrame,
+    aligned: np.ndarray,
+    settings: Settings,
+    measure_kw: dict | None = None,
+) -> tuple[pd.DataFrame, dict]:
     """Both methods for every patient -> (table, info).
 
     targets: patient parameter table with an ``ID`` column (deg / mm; NaN = not given); aligned: (P, N, 3)
@@ -468,8 +551,9 @@ def personalize_cohort(ssm: SSM, landmarks: Landmarks, ids: list[str], targets: 
     if absent:
         raise ValueError(f"personalize: the parameter table has no column {', '.join(absent)}")
     if aligned.shape != (len(ids), *ssm.mean.shape):
-        raise ValueError(f"personalize: aligned shapes {aligned.shape} do not match {len(ids)} patients x "
-                         f"{ssm.mean.shape}")
+        raise ValueError(
+            f"personalize: aligned shapes {aligned.shape} do not match {len(ids)} patients x {ssm.mean.shape}"
+        )
     t0 = time.perf_counter()
     model = build_model(ssm, landmarks, settings, measure_kw)
     t_sur = time.perf_counter() - t0
@@ -481,22 +565,27 @@ def personalize_cohort(ssm: SSM, landmarks: Landmarks, ids: list[str], targets: 
         tgt = {p: float(tab.at[pid, p]) for p in params if np.isfinite(float(tab.at[pid, p]))}
         res = model.fit(tgt)
         fit_w[i], fit_pose[i] = res.weights, res.posture_deg
-        fit_rows.append({"at_bound": res.at_bound, "evaluations": res.evaluations,
-                         "fit_s": time.perf_counter() - ts})
-        log.info("%s fit: b = %s SD, posture %.2f deg; %s", pid, np.round(res.weights, 3).tolist(),
-                 res.posture_deg, ", ".join(f"{p} {tgt.get(p, np.nan):.2f}->{res.achieved[p]:.2f}" for p in params))
+        fit_rows.append({"at_bound": res.at_bound, "evaluations": res.evaluations, "fit_s": time.perf_counter() - ts})
+        log.info(
+            "%s fit: b = %s SD, posture %.2f deg; %s",
+            pid,
+            np.round(res.weights, 3).tolist(),
+            res.posture_deg,
+            ", ".join(f"{p} {tgt.get(p, np.nan):.2f}->{res.achieved[p]:.2f}" for p in params),
+        )
     t_fit = time.perf_counter() - t1
 
     t2 = time.perf_counter()
     proj_w, raw = project_shapes(ssm, aligned, k, settings.bound_sd)
     t_proj = time.perf_counter() - t2
-    proj_rows = [{"at_bound": int(np.sum(np.abs(r) >= settings.bound_sd)), "evaluations": 0, "fit_s": 0.0}
-                 for r in raw]
+    proj_rows = [{"at_bound": int(np.sum(np.abs(r) >= settings.bound_sd)), "evaluations": 0, "fit_s": 0.0} for r in raw]
 
     fn = model.fn
     rows = []
-    for method, w, ang, extra in (("fit", fit_w, fit_pose, fit_rows),
-                                  ("projection", proj_w, np.zeros(len(ids)), proj_rows)):
+    for method, w, ang, extra in (
+        ("fit", fit_w, fit_pose, fit_rows),
+        ("projection", proj_w, np.zeros(len(ids)), proj_rows),
+    ):
         x = np.c_[w, ang] if fn.posture else w
         achieved = fn(x, params)  # one batch: every patient's model
         dist = shape_distances(model_shapes(ssm, w, ang), aligned)
@@ -510,23 +599,32 @@ def personalize_cohort(ssm: SSM, landmarks: Landmarks, ids: list[str], targets: 
             rows.append(row)
     # the floor under both methods: the patients' own aligned shapes (every mode, no fit, GPA pose)
     own_err = measure(aligned, landmarks, **measure_kw)[params].to_numpy(float) - tab.loc[ids, params].to_numpy(float)
-    info = {"surrogate_rms_error": model.surrogate.rms_error, "surrogate_s": t_sur, "fit_s": t_fit,
-            "projection_s": t_proj, "n_patients": len(ids), "n_modes": k, "parameters": list(params),
-            "posture_deg": settings.posture_deg,
-            "aligned_shape_error_mean_abs": dict(zip(params, np.nanmean(np.abs(own_err), axis=0).tolist())),
-            "aligned_shape_error_max_abs": dict(zip(params, np.nanmax(np.abs(own_err), axis=0).tolist()))}
+    info = {
+        "surrogate_rms_error": model.surrogate.rms_error,
+        "surrogate_s": t_sur,
+        "fit_s": t_fit,
+        "projection_s": t_proj,
+        "n_patients": len(ids),
+        "n_modes": k,
+        "parameters": list(params),
+        "posture_deg": settings.posture_deg,
+        "aligned_shape_error_mean_abs": dict(zip(params, np.nanmean(np.abs(own_err), axis=0).tolist())),
+        "aligned_shape_error_max_abs": dict(zip(params, np.nanmax(np.abs(own_err), axis=0).tolist())),
+    }
     return pd.DataFrame(rows), info
 
 
 # ----------------------------------------------------------------------------------- FE models, report
 
-def personalized_hex(template, hex_ssm, weights: np.ndarray, posture_deg: float = 0.0,
-                     name: str = "model") -> tuple[np.ndarray, dict]:
+
+def personalized_hex(
+    template, hex_ssm, weights: np.ndarray, posture_deg: float = 0.0, name: str = "model"
+) -> tuple[np.ndarray, dict]:
     """Hex model coordinates (n_nodes, 3) mm of one personalized model, checked and repaired exactly as the
     virtual models are (:func:`models.hex_points_checked`), then turned by its posture (a rotation changes
     no Jacobian).  A model that cannot be repaired raises RepairError naming ``name``."""
-    from .models import hex_points_checked
-    from .repair import RepairError
+    from spinecohort.fe.models import hex_points_checked
+    from spinecohort.mesh.repair import RepairError
 
     w = np.asarray(weights, dtype=float)
     if w.shape[0] > hex_ssm.fields.shape[0]:
@@ -545,8 +643,17 @@ def error_summary(table: pd.DataFrame, parameters: list[str]) -> pd.DataFrame:
         for p in parameters:
             e = g[f"{p}_error"].to_numpy(float)
             e = e[np.isfinite(e)]
-            rows.append({"method": method, "parameter": p, "unit": UNITS.get(p, ""), "n": len(e),
-                         "mean_abs_error": np.abs(e).mean(), "max_abs_error": np.abs(e).max(), "bias": e.mean()})
+            rows.append(
+                {
+                    "method": method,
+                    "parameter": p,
+                    "unit": UNITS.get(p, ""),
+                    "n": len(e),
+                    "mean_abs_error": np.abs(e).mean(),
+                    "max_abs_error": np.abs(e).max(),
+                    "bias": e.mean(),
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -554,45 +661,75 @@ def report_markdown(table: pd.DataFrame, info: dict) -> str:
     """The personalization report: error table per method, shape distances, Jacobian checks, run times."""
     params = info["parameters"]
     summ = error_summary(table, params)
-    lines = [f"# Personalization report ({info['n_patients']} patients, {info['n_modes']} modes)", "",
-             f"Fitted parameters: {', '.join(params)}; posture (sagittal rotation) box "
-             f"±{info['posture_deg']:g} deg.  Errors are achieved - target, targets measured on each patient's "
-             "own mesh.", "", "## Parameter error (mean / max |achieved - target|)", "",
-             "| parameter | unit | fit mean | fit max | projection mean | projection max | aligned shape mean | "
-             "aligned shape max |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Personalization report ({info['n_patients']} patients, {info['n_modes']} modes)",
+        "",
+        f"Fitted parameters: {', '.join(params)}; posture (sagittal rotation) box "
+        f"±{info['posture_deg']:g} deg.  Errors are achieved - target, targets measured on each patient's "
+        "own mesh.",
+        "",
+        "## Parameter error (mean / max |achieved - target|)",
+        "",
+        "| parameter | unit | fit mean | fit max | projection mean | projection max | aligned shape mean | "
+        "aligned shape max |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for p in params:
         f = summ[(summ.method == "fit") & (summ.parameter == p)].iloc[0]
         q = summ[(summ.method == "projection") & (summ.parameter == p)].iloc[0]
-        lines.append(f"| {p} | {UNITS.get(p, '')} | {f.mean_abs_error:.3f} | {f.max_abs_error:.3f} | "
-                     f"{q.mean_abs_error:.3f} | {q.max_abs_error:.3f} | "
-                     f"{info['aligned_shape_error_mean_abs'][p]:.3f} | {info['aligned_shape_error_max_abs'][p]:.3f} |")
-    lines += ["", "The aligned-shape columns measure each patient's own GPA-aligned shape (every mode, no fit): "
-              "what any model in the SSM frame inherits from the alignment (GPA removes posture, so PT and SS "
-              "change; PI and LL do not).", "", "## Shape distance to the patient's aligned shape (mm)", "",
-              "Per-vertex distance between corresponding vertices after a rigid superposition (shape only); "
-              "in brackets as placed in the SSM frame.", "",
-              "| method | mean of means | max of means | max of maxima | weights at ±bound |", "|---|---|---|---|---|"]
+        lines.append(
+            f"| {p} | {UNITS.get(p, '')} | {f.mean_abs_error:.3f} | {f.max_abs_error:.3f} | "
+            f"{q.mean_abs_error:.3f} | {q.max_abs_error:.3f} | "
+            f"{info['aligned_shape_error_mean_abs'][p]:.3f} | {info['aligned_shape_error_max_abs'][p]:.3f} |"
+        )
+    lines += [
+        "",
+        "The aligned-shape columns measure each patient's own GPA-aligned shape (every mode, no fit): "
+        "what any model in the SSM frame inherits from the alignment (GPA removes posture, so PT and SS "
+        "change; PI and LL do not).",
+        "",
+        "## Shape distance to the patient's aligned shape (mm)",
+        "",
+        "Per-vertex distance between corresponding vertices after a rigid superposition (shape only); "
+        "in brackets as placed in the SSM frame.",
+        "",
+        "| method | mean of means | max of means | max of maxima | weights at ±bound |",
+        "|---|---|---|---|---|",
+    ]
     for method, g in table.groupby("method", sort=False):
-        lines.append(f"| {method} | {g.dist_mean_mm.mean():.2f} ({g.dist_placed_mean_mm.mean():.2f}) | "
-                     f"{g.dist_mean_mm.max():.2f} | {g.dist_max_mm.max():.2f} ({g.dist_placed_max_mm.max():.2f}) | "
-                     f"{int(g.at_bound.sum())} |")
+        lines.append(
+            f"| {method} | {g.dist_mean_mm.mean():.2f} ({g.dist_placed_mean_mm.mean():.2f}) | "
+            f"{g.dist_mean_mm.max():.2f} | {g.dist_max_mm.max():.2f} ({g.dist_placed_max_mm.max():.2f}) | "
+            f"{int(g.at_bound.sum())} |"
+        )
     fit = table[table.method == "fit"]
     if "invalid_before" in fit:
-        lines += ["", "## Hexahedral models (fit method, `personalized/<ID>.inp`)", "",
-                  f"{len(fit)} models; inverted hexes before repair in {int((fit.invalid_before > 0).sum())} "
-                  f"(total {int(fit.invalid_before.sum())}), after repair {int(fit.invalid_after.sum())}; "
-                  f"min scaled Jacobian after repair {fit.min_sj_after.min():.3f}."]
+        lines += [
+            "",
+            "## Hexahedral models (fit method, `personalized/<ID>.inp`)",
+            "",
+            f"{len(fit)} models; inverted hexes before repair in {int((fit.invalid_before > 0).sum())} "
+            f"(total {int(fit.invalid_before.sum())}), after repair {int(fit.invalid_after.sum())}; "
+            f"min scaled Jacobian after repair {fit.min_sj_after.min():.3f}.",
+        ]
     sur = info["surrogate_rms_error"]
-    lines += ["", "## Run", "",
-              f"Surrogate (quadratic, held-out RMS error: {', '.join(f'{p} {e:.3f}' for p, e in sur.items())}) "
-              f"{info['surrogate_s']:.1f} s; fits {info['fit_s']:.1f} s "
-              f"({info['fit_s'] / max(info['n_patients'], 1):.2f} s per patient, "
-              f"{fit.evaluations.mean():.0f} models measured each); projections {info['projection_s']:.2f} s.",
-              "", "## Pros and cons, in numbers", "",
-              f"- fit: parameters within {summ[summ.method == 'fit'].max_abs_error.max():.3f} (max over "
-              f"parameters and patients), needs only the parameters (radiographs), but the shape is the most "
-              f"probable one for them: {fit.dist_mean_mm.mean():.1f} mm mean distance to the patient.",
-              f"- projection: shape {table[table.method == 'projection'].dist_mean_mm.mean():.1f} mm mean "
-              f"distance, needs the patient's 3-D shape; parameters off by up to "
-              f"{summ[summ.method == 'projection'].max_abs_error.max():.1f} (modes truncated, GPA posture).", ""]
+    lines += [
+        "",
+        "## Run",
+        "",
+        f"Surrogate (quadratic, held-out RMS error: {', '.join(f'{p} {e:.3f}' for p, e in sur.items())}) "
+        f"{info['surrogate_s']:.1f} s; fits {info['fit_s']:.1f} s "
+        f"({info['fit_s'] / max(info['n_patients'], 1):.2f} s per patient, "
+        f"{fit.evaluations.mean():.0f} models measured each); projections {info['projection_s']:.2f} s.",
+        "",
+        "## Pros and cons, in numbers",
+        "",
+        f"- fit: parameters within {summ[summ.method == 'fit'].max_abs_error.max():.3f} (max over "
+        f"parameters and patients), needs only the parameters (radiographs), but the shape is the most "
+        f"probable one for them: {fit.dist_mean_mm.mean():.1f} mm mean distance to the patient.",
+        f"- projection: shape {table[table.method == 'projection'].dist_mean_mm.mean():.1f} mm mean "
+        f"distance, needs the patient's 3-D shape; parameters off by up to "
+        f"{summ[summ.method == 'projection'].max_abs_error.max():.1f} (modes truncated, GPA posture).",
+        "",
+    ]
     return "\n".join(lines)

@@ -70,8 +70,10 @@ def safe_name(name: str, what: str = "name") -> str:
     """A configurable file or directory name: one path component of letters, digits, ``._-``, starting
     with a letter or digit (so no ``/``, no absolute path, no ``..``, no hidden file)."""
     if not isinstance(name, str) or not _SAFE_NAME.fullmatch(name):
-        raise ReleaseError(f"{what} {name!r} must be a plain name (letters, digits, '.', '_', '-'; starting "
-                           f"with a letter or digit; no '/', no '..', not absolute)")
+        raise ReleaseError(
+            f"{what} {name!r} must be a plain name (letters, digits, '.', '_', '-'; starting "
+            f"with a letter or digit; no '/', no '..', not absolute)"
+        )
     return name
 
 
@@ -79,10 +81,16 @@ def safe_relpath(rel: str, what: str = "path") -> str:
     """A relative POSIX path that stays inside its root: no absolute path, no ``..``/``.``/empty
     component, no backslash or control character.  Returns it unchanged."""
     p = PurePosixPath(rel)
-    if (not rel or rel.startswith("/") or p.is_absolute() or _CTRL.search(rel)
-            or any(part in ("", ".", "..") for part in rel.split("/"))):
-        raise ReleaseError(f"{what} {rel!r} is not a safe relative path (absolute, '..', '.', empty or "
-                           f"control characters)")
+    if (
+        not rel
+        or rel.startswith("/")
+        or p.is_absolute()
+        or _CTRL.search(rel)
+        or any(part in ("", ".", "..") for part in rel.split("/"))
+    ):
+        raise ReleaseError(
+            f"{what} {rel!r} is not a safe relative path (absolute, '..', '.', empty or control characters)"
+        )
     return rel
 
 
@@ -95,6 +103,7 @@ def release_dir(results: str | Path, name: str) -> Path:
 @dataclass(frozen=True)
 class Part:
     """One archive part: its file name, the store files it holds (relative, sorted) and their bytes."""
+
     name: str
     members: tuple[str, ...]
     shards: tuple[int, ...]
@@ -148,8 +157,15 @@ def plan_parts(store: str | Path, part_bytes: int) -> list[Part]:
         shards.append(shard)
         members.extend(units[shard])
     width = max(3, len(str(len(groups))))
-    return [Part(f"{STORE_NAME}.part{k + 1:0{width}d}.tar", tuple(sorted(members)), tuple(shards),
-                 sum(size[r] for r in members)) for k, (shards, members) in enumerate(groups)]
+    return [
+        Part(
+            f"{STORE_NAME}.part{k + 1:0{width}d}.tar",
+            tuple(sorted(members)),
+            tuple(shards),
+            sum(size[r] for r in members),
+        )
+        for k, (shards, members) in enumerate(groups)
+    ]
 
 
 def write_archive(path: str | Path, root: str | Path, members, prefix: str = STORE_NAME) -> Path:
@@ -159,8 +175,7 @@ def write_archive(path: str | Path, root: str | Path, members, prefix: str = STO
     ARCHIVE_MTIME, mode 0644, uid/gid 0, empty owner names, no directory entries.
     """
     root = Path(root)
-    with open(path, "wb") as fh, tarfile.open(fileobj=fh, mode="w", format=tarfile.PAX_FORMAT,
-                                              encoding="utf-8") as tar:
+    with open(path, "wb") as fh, tarfile.open(fileobj=fh, mode="w", format=tarfile.PAX_FORMAT, encoding="utf-8") as tar:
         for rel in members:
             src = root / safe_relpath(rel, f"archive member of {path}")
             info = tarfile.TarInfo(f"{prefix}/{rel}")
@@ -180,8 +195,9 @@ def _check_member(archive: Path, m: tarfile.TarInfo, dest: Path) -> None:
     try:
         safe_relpath(m.name.rstrip("/") if m.isdir() else m.name, "member")
     except ReleaseError:
-        raise ReleaseError(f"{archive}: member {m.name!r} would be written outside the extraction "
-                           f"directory (absolute name or '..')") from None
+        raise ReleaseError(
+            f"{archive}: member {m.name!r} would be written outside the extraction directory (absolute name or '..')"
+        ) from None
     target = (dest / m.name).resolve()
     if not target.is_relative_to(dest.resolve()):
         raise ReleaseError(f"{archive}: member {m.name!r} resolves to {target}, outside {dest}")
@@ -208,8 +224,18 @@ def safe_extract(archive: str | Path, dest: str | Path) -> list[str]:
 
 
 # -------------------------------------------------------------------------------------- payload
-def payload_layout(results: str | Path, *, template_inp, workbook, virtual_csv, patient_table, patients,
-                   personalized, figures, model_inputs: dict) -> dict[str, Path]:
+def payload_layout(
+    results: str | Path,
+    *,
+    template_inp,
+    workbook,
+    virtual_csv,
+    patient_table,
+    patients,
+    personalized,
+    figures,
+    model_inputs: dict,
+) -> dict[str, Path]:
     """Where each release input goes inside ``data/`` (relative POSIX path -> source file).
 
     Files keep their base names (patients under ``patients/``, personalized models under
@@ -245,10 +271,11 @@ def payload_layout(results: str | Path, *, template_inp, workbook, virtual_csv, 
     return dict(sorted(out.items()))
 
 
-def release_counts(store: str | Path, template_npz: str | Path, *, n_patients: int, n_personalized: int,
-                   n_figures: int, hex_type: str) -> dict:
+def release_counts(
+    store: str | Path, template_npz: str | Path, *, n_patients: int, n_personalized: int, n_figures: int, hex_type: str
+) -> dict:
     """What the release holds, in numbers (recorded in datacite.json, release.json and the README)."""
-    from .store import _open_meta, model_id
+    from spinecohort.store.zarr_store import _open_meta, model_id
 
     with warnings.catch_warnings():  # zarr: "numcodecs codecs are not in the v3 spec" on every parse
         warnings.simplefilter("ignore", UserWarning)
@@ -261,13 +288,23 @@ def release_counts(store: str | Path, template_npz: str | Path, *, n_patients: i
     if 0.0 in levels:  # the all-zero (mean) model, when the grid has it
         mean_id = int(model_id(np.zeros(meta["n_modes"]), levels))
     return {
-        "n_models": int(meta["n_models"]), "n_modes": int(meta["n_modes"]), "levels": levels,
-        "shard_models": int(meta["shard_models"]), "n_shards": int(meta["n_shards"]),
-        "n_tri_nodes": n_tri, "n_hex_nodes": n_hex, "n_hex_elements": n_hex_elements,
+        "n_models": int(meta["n_models"]),
+        "n_modes": int(meta["n_modes"]),
+        "levels": levels,
+        "shard_models": int(meta["shard_models"]),
+        "n_shards": int(meta["n_shards"]),
+        "n_tri_nodes": n_tri,
+        "n_hex_nodes": n_hex,
+        "n_hex_elements": n_hex_elements,
         "n_nodes_stored": int(meta["n_models"]) * (n_tri + n_hex),
-        "n_patients": int(n_patients), "n_personalized": int(n_personalized), "n_figures": int(n_figures),
-        "hex_type": hex_type, "units": "mm", "encoding": meta["encoding"],
-        "error_bound_mm": float(meta["error_bound_mm"]), "mean_model_id": mean_id,
+        "n_patients": int(n_patients),
+        "n_personalized": int(n_personalized),
+        "n_figures": int(n_figures),
+        "hex_type": hex_type,
+        "units": "mm",
+        "encoding": meta["encoding"],
+        "error_bound_mm": float(meta["error_bound_mm"]),
+        "mean_model_id": mean_id,
     }
 
 
@@ -283,8 +320,17 @@ def _parts_index(parts: list[Part], shard_models: int, n_models: int) -> str:
     w.writerow(["part", "first_shard", "last_shard", "first_model", "last_model", "members", "member_bytes"])
     for p in parts:
         lo, hi = min(p.shards), max(p.shards)
-        w.writerow([p.name, lo, hi, f"model_{lo * shard_models:05d}",
-                    f"model_{min((hi + 1) * shard_models, n_models) - 1:05d}", len(p.members), p.nbytes])
+        w.writerow(
+            [
+                p.name,
+                lo,
+                hi,
+                f"model_{lo * shard_models:05d}",
+                f"model_{min((hi + 1) * shard_models, n_models) - 1:05d}",
+                len(p.members),
+                p.nbytes,
+            ]
+        )
     return buf.getvalue()
 
 
@@ -297,8 +343,13 @@ def datacite_record(meta: dict, files: list[dict], counts: dict, date: str) -> d
         if c.get("affiliation"):
             entry["affiliation"] = [{"name": c["affiliation"]}]
         if c.get("orcid"):
-            entry["nameIdentifiers"] = [{"nameIdentifier": f"https://orcid.org/{c['orcid']}",
-                                         "nameIdentifierScheme": "ORCID", "schemeUri": "https://orcid.org"}]
+            entry["nameIdentifiers"] = [
+                {
+                    "nameIdentifier": f"https://orcid.org/{c['orcid']}",
+                    "nameIdentifierScheme": "ORCID",
+                    "schemeUri": "https://orcid.org",
+                }
+            ]
         creators.append(entry)
     total = sum(f["size"] for f in files)
     return {
@@ -311,17 +362,27 @@ def datacite_record(meta: dict, files: list[dict], counts: dict, date: str) -> d
         "dates": [{"date": date, "dateType": "Issued"}],
         "version": meta["version"],
         "language": "en",
-        "rightsList": [{"rights": meta["licence"], "rightsIdentifier": meta["licence"].lower(),
-                        "rightsIdentifierScheme": "SPDX", "schemeUri": "https://spdx.org/licenses/",
-                        "rightsUri": f"https://spdx.org/licenses/{meta['licence']}.html"}],
+        "rightsList": [
+            {
+                "rights": meta["licence"],
+                "rightsIdentifier": meta["licence"].lower(),
+                "rightsIdentifierScheme": "SPDX",
+                "schemeUri": "https://spdx.org/licenses/",
+                "rightsUri": f"https://spdx.org/licenses/{meta['licence']}.html",
+            }
+        ],
         "descriptions": [
             {"description": meta["description"], "descriptionType": "Abstract"},
-            {"description": (f"{counts['n_models']} virtual models ({counts['n_hex_nodes']} FE nodes and "
-                             f"{counts['n_tri_nodes']} surface vertices each, mm) in a sharded Zarr v3 store "
-                             f"split into {counts['n_parts']} tar parts; {counts['n_patients']} patient "
-                             f"surfaces; {counts['n_personalized']} personalized models. Packaged as a "
-                             f"BagIt bag (RFC 8493); see data/README.md."),
-             "descriptionType": "TechnicalInfo"},
+            {
+                "description": (
+                    f"{counts['n_models']} virtual models ({counts['n_hex_nodes']} FE nodes and "
+                    f"{counts['n_tri_nodes']} surface vertices each, mm) in a sharded Zarr v3 store "
+                    f"split into {counts['n_parts']} tar parts; {counts['n_patients']} patient "
+                    f"surfaces; {counts['n_personalized']} personalized models. Packaged as a "
+                    f"BagIt bag (RFC 8493); see data/README.md."
+                ),
+                "descriptionType": "TechnicalInfo",
+            },
         ],
         "subjects": [{"subject": k} for k in meta["keywords"]],
         "sizes": [f"{total} bytes", f"{len(files)} files", f"{counts['n_models']} models"],
@@ -331,16 +392,25 @@ def datacite_record(meta: dict, files: list[dict], counts: dict, date: str) -> d
     }
 
 
-_FORMATS = {".tar": "application/x-tar", ".inp": "text/plain (Abaqus/CalculiX input deck)",
-            ".xlsx": "application/vnd.openxmlformats-officedocument.spreadsheetml.sheet",
-            ".csv": "text/csv", ".stl": "model/stl", ".png": "image/png", ".md": "text/markdown",
-            ".npz": "application/x-npz (NumPy)", ".npy": "application/x-npy (NumPy)", ".json": "application/json"}
+_FORMATS = {
+    ".tar": "application/x-tar",
+    ".inp": "text/plain (Abaqus/CalculiX input deck)",
+    ".xlsx": "application/vnd.openxmlformats-officedocument.spreadsheetml.sheet",
+    ".csv": "text/csv",
+    ".stl": "model/stl",
+    ".png": "image/png",
+    ".md": "text/markdown",
+    ".npz": "application/x-npz (NumPy)",
+    ".npy": "application/x-npy (NumPy)",
+    ".json": "application/json",
+}
 
 
 def _bag_info(meta: dict, date: str, counts: dict) -> dict:
     import bagit
 
-    from . import __version__
+    from spinecohort import __version__
+
     first = meta["creators"][0]["name"]
     return {
         "Source-Organization": meta["publisher"],
@@ -363,9 +433,19 @@ def _copy(src: Path, dst: Path) -> None:
     shutil.copyfile(src, dst)  # content only: the bag's files get ordinary permissions, not 0600
 
 
-def build_release(out: str | Path, *, store: str | Path, files: dict[str, Path], meta: dict,
-                  counts: dict, readme_values: dict | None = None, generated: dict[str, bytes] | None = None,
-                  model_settings: dict | None = None, processes: int = 1, verify: bool = True) -> dict:
+def build_release(
+    out: str | Path,
+    *,
+    store: str | Path,
+    files: dict[str, Path],
+    meta: dict,
+    counts: dict,
+    readme_values: dict | None = None,
+    generated: dict[str, bytes] | None = None,
+    model_settings: dict | None = None,
+    processes: int = 1,
+    verify: bool = True,
+) -> dict:
     """Build the bag at ``out`` (atomically) and return a summary (files, bytes, parts, seconds).
 
     store: the cohort store (must pass ``check_store``).  files: ``payload_layout`` output; generated:
@@ -375,7 +455,7 @@ def build_release(out: str | Path, *, store: str | Path, files: dict[str, Path],
     """
     import bagit
 
-    from .store import check_store
+    from spinecohort.store.zarr_store import check_store
 
     out = Path(out)
     safe_name(out.name, "release directory")
@@ -402,31 +482,56 @@ def build_release(out: str | Path, *, store: str | Path, files: dict[str, Path],
             write_archive(tmp / p.name, store, p.members)
         counts = {**counts, "n_parts": len(parts)}
         (tmp / PARTS_INDEX).write_text(_parts_index(parts, counts["shard_models"], counts["n_models"]))
-        release_json = {"version": meta["version"], "title": meta["title"], "store": STORE_NAME,
-                        "parts": [p.name for p in parts], **counts, **(model_settings or {})}
+        release_json = {
+            "version": meta["version"],
+            "title": meta["title"],
+            "store": STORE_NAME,
+            "parts": [p.name for p in parts],
+            **counts,
+            **(model_settings or {}),
+        }
         (tmp / RELEASE_JSON).parent.mkdir(parents=True, exist_ok=True)
         (tmp / RELEASE_JSON).write_text(json.dumps(release_json, indent=2, sort_keys=True) + "\n")
         sm, nm = counts["shard_models"], counts["n_models"]
         parts_table = "\n".join(
             f"| `{p.name}` | model_{min(p.shards) * sm:05d} – model_{min((max(p.shards) + 1) * sm, nm) - 1:05d} "
-            f"| {p.nbytes / 1e6:.1f} MB |" for p in parts)
+            f"| {p.nbytes / 1e6:.1f} MB |"
+            for p in parts
+        )
         mean = counts.get("mean_model_id")
-        (tmp / "README.md").write_text(render_readme({
-            **counts, **(readme_values or {}), "title": meta["title"], "version": meta["version"],
-            "licence": meta["licence"], "parts_table": parts_table, "n_levels": len(counts["levels"]),
-            "levels": "{" + ", ".join(f"{v:g}" for v in counts["levels"]) + "}",
-            "mean_model": f"model_{mean:05d}" if mean is not None else "model_00000"}))
+        (tmp / "README.md").write_text(
+            render_readme(
+                {
+                    **counts,
+                    **(readme_values or {}),
+                    "title": meta["title"],
+                    "version": meta["version"],
+                    "licence": meta["licence"],
+                    "parts_table": parts_table,
+                    "n_levels": len(counts["levels"]),
+                    "levels": "{" + ", ".join(f"{v:g}" for v in counts["levels"]) + "}",
+                    "mean_model": f"model_{mean:05d}" if mean is not None else "model_00000",
+                }
+            )
+        )
         t_payload = time.perf_counter()
-        log.info("payload: %d files + %d archive parts (%.1f MB of store files) in %.1f s", len(files),
-                 len(parts), sum(p.nbytes for p in parts) / 1e6, t_payload - t0)
+        log.info(
+            "payload: %d files + %d archive parts (%.1f MB of store files) in %.1f s",
+            len(files),
+            len(parts),
+            sum(p.nbytes for p in parts) / 1e6,
+            t_payload - t0,
+        )
         bagit.make_bag(str(tmp), _bag_info(meta, date, counts), processes=processes, checksums=["sha256"])
         # bagit.py 1.9 still stamps the draft version 0.97 (LibraryOfCongress/bagit-python#141); what it
         # writes (manifests, percent-encoded names, tag manifest, bag-info) is what RFC 8493 specifies
         (tmp / "bagit.txt").write_text("BagIt-Version: 1.0\nTag-File-Character-Encoding: UTF-8\n")
         bag = bagit.Bag(str(tmp))
         entries = bag.payload_entries()
-        file_list = [{"key": k, "size": (tmp / k).stat().st_size, "checksum": f"sha256:{entries[k]['sha256']}"}
-                     for k in sorted(entries)]
+        file_list = [
+            {"key": k, "size": (tmp / k).stat().st_size, "checksum": f"sha256:{entries[k]['sha256']}"}
+            for k in sorted(entries)
+        ]
         (tmp / DATACITE).parent.mkdir()
         (tmp / DATACITE).write_text(json.dumps(datacite_record(meta, file_list, counts, date), indent=2) + "\n")
         bag.save()  # rewrites bag-info.txt and the tag manifest, now covering metadata/datacite.json
@@ -444,9 +549,15 @@ def build_release(out: str | Path, *, store: str | Path, files: dict[str, Path],
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return {"files": len(file_list), "bytes": sum(f["size"] for f in file_list), "parts": len(parts),
-            "seconds_payload": t_payload - t0, "seconds_bag": t_bag - t_payload,
-            "seconds_verify": report.get("seconds", 0.0), "seconds": time.perf_counter() - t0}
+    return {
+        "files": len(file_list),
+        "bytes": sum(f["size"] for f in file_list),
+        "parts": len(parts),
+        "seconds_payload": t_payload - t0,
+        "seconds_bag": t_bag - t_payload,
+        "seconds_verify": report.get("seconds", 0.0),
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def _sort_tagmanifest(path: Path) -> None:
@@ -460,7 +571,11 @@ def _sort_tagmanifest(path: Path) -> None:
 def _tag_problems(bag, root: Path) -> list[str]:
     """Files outside data/ that no tag manifest lists (bagit only checks the payload for extras)."""
     listed = set(bag.tagfile_entries())
-    fixed = {"bagit.txt", *(Path(f).name for f in bag.manifest_files()), *(Path(f).name for f in bag.tagmanifest_files())}
+    fixed = {
+        "bagit.txt",
+        *(Path(f).name for f in bag.manifest_files()),
+        *(Path(f).name for f in bag.tagmanifest_files()),
+    }
     out = []
     for p in sorted(root.rglob("*")):
         rel = p.relative_to(root).as_posix()
@@ -469,8 +584,9 @@ def _tag_problems(bag, root: Path) -> list[str]:
     return out
 
 
-def verify_release(bag_dir: str | Path, processes: int = 1, unpack: bool = True,
-                   workdir: str | Path | None = None) -> dict:
+def verify_release(
+    bag_dir: str | Path, processes: int = 1, unpack: bool = True, workdir: str | Path | None = None
+) -> dict:
     """Check a release bag; raise ReleaseError listing every problem found.
 
     1. BagIt: no file missing, no extra file (payload and tag files), every size as recorded in
@@ -482,7 +598,7 @@ def verify_release(bag_dir: str | Path, processes: int = 1, unpack: bool = True,
     """
     import bagit
 
-    from .store import check_store, read_model
+    from spinecohort.store.zarr_store import check_store, read_model
 
     t0 = time.perf_counter()
     root = Path(bag_dir)
@@ -506,8 +622,9 @@ def verify_release(bag_dir: str | Path, processes: int = 1, unpack: bool = True,
     for f in record.get("files", []):
         p = root / safe_relpath(f["key"], f"{DATACITE} file key")
         if p.is_file() and p.stat().st_size != f["size"]:
-            problems.append(f"{f['key']}: {p.stat().st_size} bytes, but {DATACITE} records {f['size']} "
-                            f"(truncated or replaced)")
+            problems.append(
+                f"{f['key']}: {p.stat().st_size} bytes, but {DATACITE} records {f['size']} (truncated or replaced)"
+            )
     if not problems:
         try:
             bag.validate(processes=processes)
@@ -531,8 +648,10 @@ def verify_release(bag_dir: str | Path, processes: int = 1, unpack: bool = True,
             for row in index:
                 names = safe_extract(data / row["part"], tmp)
                 if len(names) != int(row["members"]):
-                    raise ReleaseError(f"data/{row['part']}: {len(names)} members, data/{PARTS_INDEX} lists "
-                                       f"{row['members']} (truncated archive?)")
+                    raise ReleaseError(
+                        f"data/{row['part']}: {len(names)} members, data/{PARTS_INDEX} lists "
+                        f"{row['members']} (truncated archive?)"
+                    )
             store = Path(tmp) / STORE_NAME
             try:
                 bad = check_store(store)
@@ -541,6 +660,7 @@ def verify_release(bag_dir: str | Path, processes: int = 1, unpack: bool = True,
             if bad:
                 raise ReleaseError(f"{root}: the unpacked store has missing or corrupt shards {bad}")
             import zarr
+
             n_models = zarr.open_group(str(store), mode="r").attrs["n_models"]
             for i in (0, n_models - 1):
                 tri, hexa = read_model(store, i)
@@ -548,8 +668,9 @@ def verify_release(bag_dir: str | Path, processes: int = 1, unpack: bool = True,
                     raise ReleaseError(f"{root}: model {i} of the unpacked store has non-finite coordinates")
             counts = record.get("counts", {})
             if counts and counts.get("n_models") != n_models:
-                raise ReleaseError(f"{root}: unpacked store holds {n_models} models, {DATACITE} says "
-                                   f"{counts.get('n_models')}")
+                raise ReleaseError(
+                    f"{root}: unpacked store holds {n_models} models, {DATACITE} says {counts.get('n_models')}"
+                )
             report.update(parts=len(index), models=int(n_models))
     report["seconds"] = time.perf_counter() - t0
     return report
@@ -576,13 +697,25 @@ def release_model_inputs(release: str | Path) -> dict:
     data = root / "data" if (root / "data" / RELEASE_JSON).is_file() else root
     rj = data / RELEASE_JSON
     if not rj.is_file():
-        raise ReleaseError(f"{root}: no {RELEASE_JSON} (neither {root}/data/{RELEASE_JSON} nor {rj}); "
-                           f"is this a spinecohort release?")
+        raise ReleaseError(
+            f"{root}: no {RELEASE_JSON} (neither {root}/data/{RELEASE_JSON} nor {rj}); is this a spinecohort release?"
+        )
     info = json.loads(rj.read_text())
-    paths = {k: data / MODEL_INPUTS / f for k, f in
-             (("ssm", "ssm.npz"), ("hex_ssm", "hex_ssm.npz"), ("template", "template.npz"), ("faces", "faces.npy"))}
+    paths = {
+        k: data / MODEL_INPUTS / f
+        for k, f in (
+            ("ssm", "ssm.npz"),
+            ("hex_ssm", "hex_ssm.npz"),
+            ("template", "template.npz"),
+            ("faces", "faces.npy"),
+        )
+    }
     for k, p in paths.items():
         if not p.is_file():
             raise ReleaseError(f"{p}: missing from the release ({k})")
-    return {**paths, "grid": {"n_modes": info["n_modes"], "levels": info["levels"]}, "hex_type": info["hex_type"],
-            "fe": info.get("fe")}
+    return {
+        **paths,
+        "grid": {"n_modes": info["n_modes"], "levels": info["levels"]},
+        "hex_type": info["hex_type"],
+        "fe": info.get("fe"),
+    }

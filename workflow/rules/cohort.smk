@@ -8,15 +8,15 @@ if config["cohort"]["source"] == "synthetic":
             stls=COHORT["stls"],
             sheet=COHORT["sheet"],
             landmarks=COHORT["landmarks"],
-        params:
-            synthetic=config["synthetic"],
         log:
             f"{LOGS}/synthetic_cohort.log",
         benchmark:
             f"{BENCH}/synthetic_cohort.tsv"
-        threads: 1
         conda:
             "../../environment.yml"
+        threads: 1
+        params:
+            synthetic=config["synthetic"],
         script:
             "../scripts/synthetic_cohort.py"
 
@@ -28,16 +28,16 @@ rule validate_cohort:
         landmarks=COHORT["landmarks"],
     output:
         f"{R}/cohort/cohort.npz",
-    params:
-        units=config["cohort"]["units"],
-        degenerate_area_mm2=config["cohort"]["degenerate_area_mm2"],
-        max_degenerate_fraction=config["cohort"]["max_degenerate_fraction"],
     log:
         f"{LOGS}/validate_cohort.log",
     benchmark:
         f"{BENCH}/validate_cohort.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        units=config["cohort"]["units"],
+        degenerate_area_mm2=config["cohort"]["degenerate_area_mm2"],
+        max_degenerate_fraction=config["cohort"]["max_degenerate_fraction"],
     script:
         "../scripts/validate_cohort.py"

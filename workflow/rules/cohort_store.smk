@@ -13,16 +13,16 @@ rule init_store:
         hex_ssm=f"{R}/template/hex_ssm.npz",
     output:
         f"{STORE}/.initialized",
-    params:
-        grid=config["grid"],
-        store=config["store"],
     log:
         f"{LOGS}/init_store.log",
     benchmark:
         f"{BENCH}/init_store.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        grid=config["grid"],
+        store=config["store"],
     script:
         "../scripts/init_store.py"
 
@@ -38,16 +38,16 @@ rule sample_shard:
     output:
         quality=f"{R}/shards/{{shard}}.quality.csv",
         record=f"{R}/shards/{{shard}}.sample.json",
-    params:
-        grid=config["grid"],
-        settings=config["store"],
     log:
         f"{LOGS}/sample_shard/{{shard}}.log",
     benchmark:
         f"{BENCH}/sample_shard/{{shard}}.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        grid=config["grid"],
+        settings=config["store"],
     script:
         "../scripts/sample_shard.py"
 
@@ -61,15 +61,15 @@ rule measure_shard:
     output:
         params=f"{R}/shards/{{shard}}.params.csv",
         tri_vs_hex=f"{R}/shards/{{shard}}.tri_vs_hex.csv",
-    params:
-        measure=config["measure"],
     log:
         f"{LOGS}/measure_shard/{{shard}}.log",
     benchmark:
         f"{BENCH}/measure_shard/{{shard}}.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        measure=config["measure"],
     script:
         "../scripts/measure_shard.py"
 
@@ -87,8 +87,8 @@ rule check_store:
         f"{LOGS}/check_store.log",
     benchmark:
         f"{BENCH}/check_store.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
     script:
         "../scripts/check_store.py"

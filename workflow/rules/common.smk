@@ -2,10 +2,12 @@
 from pathlib import Path
 
 from spinecohort.config import ConfigError, cohort_files, validate_config
-from spinecohort.store import n_models, n_shards
+from spinecohort.store.zarr_store import n_models, n_shards
 
 try:
-    validate_config(config, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml")
+    validate_config(
+        config, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml"
+    )
 except ConfigError as exc:
     raise WorkflowError(str(exc)) from None
 
@@ -15,13 +17,21 @@ BENCH = f"{R}/benchmarks"
 COHORT = cohort_files(config)
 STORE = f"{R}/cohort.zarr"  # the virtual cohort (docs/store.md)
 # shard ids of the virtual cohort, zero-padded: one sample and one measure job each
-SHARDS = [f"{s:05d}" for s in range(n_shards(n_models(config["grid"]["n_modes"], config["grid"]["levels"]),
-                                              config["store"]["shard_models"]))]
+SHARDS = [
+    f"{s:05d}"
+    for s in range(
+        n_shards(
+            n_models(config["grid"]["n_modes"], config["grid"]["levels"]),
+            config["store"]["shard_models"],
+        )
+    )
+]
 
 
 def personalized_models():
     """The personalized .inp deck of every patient (personalize.smk; the figures and the release use it).
-    Patient IDs = the cohort's STL stems (synthetic: P01..Pnn), as the cohort stage names them."""
+    Patient IDs = the cohort's STL stems (synthetic: P01..Pnn), as the cohort stage names them.
+    """
     return [f"{R}/personalized/{Path(p).stem}.inp" for p in COHORT["stls"]]
 
 
@@ -75,8 +85,16 @@ def release_inputs(wildcards):
         "patients": COHORT["stls"],
         "personalized": personalized_models(),
         # the SSM figures every configuration makes, plus the figure stage's pictures
-        "figures": list(dict.fromkeys([f"{R}/ssm/compactness.png", f"{R}/ssm/quality.png",
-                                       f"{R}/figures/mode_variation.png", *figure_files()])),
+        "figures": list(
+            dict.fromkeys(
+                [
+                    f"{R}/ssm/compactness.png",
+                    f"{R}/ssm/quality.png",
+                    f"{R}/figures/mode_variation.png",
+                    *figure_files(),
+                ]
+            )
+        ),
         "ssm": f"{R}/ssm/ssm.npz",
         "hex_ssm": f"{R}/template/hex_ssm.npz",
         "template": f"{R}/template/template.npz",

@@ -9,19 +9,23 @@ rule mode_variation_figure:
         ssm=f"{R}/ssm/ssm.npz",
         cohort=f"{R}/cohort/cohort.npz",
     output:
-        report(f"{R}/figures/mode_variation.png", category="1. Statistical shape model",
-               caption="../report/mode_variation.rst", labels={"figure": "shape modes at -3, 0, +3 SD"}),
-    params:
-        n_modes=config["figures"]["mode_variation_modes"],
-        window=config["figures"]["window"],
-        dpi=config["figures"]["dpi"],
+        report(
+            f"{R}/figures/mode_variation.png",
+            category="1. Statistical shape model",
+            caption="../report/mode_variation.rst",
+            labels={"figure": "shape modes at -3, 0, +3 SD"},
+        ),
     log:
         f"{LOGS}/mode_variation_figure.log",
     benchmark:
         f"{BENCH}/mode_variation_figure.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        n_modes=config["figures"]["mode_variation_modes"],
+        window=config["figures"]["window"],
+        dpi=config["figures"]["dpi"],
     script:
         "../scripts/mode_variation_figure.py"
 
@@ -31,19 +35,23 @@ rule mean_model_parts_figure:
         template=f"{R}/template/template.npz",
         hex_ssm=f"{R}/template/hex_ssm.npz",
     output:
-        report(f"{R}/figures/mean_model_parts.png", category="2. Hexahedral FE template",
-               caption="../report/mean_model_parts.rst", labels={"figure": "hex mean model by part"}),
-    params:
-        size=config["figures"]["parts_size"],
-        dpi=config["figures"]["dpi"],
-        detail_disc=config["figures"]["detail_disc"],
+        report(
+            f"{R}/figures/mean_model_parts.png",
+            category="2. Hexahedral FE template",
+            caption="../report/mean_model_parts.rst",
+            labels={"figure": "hex mean model by part"},
+        ),
     log:
         f"{LOGS}/mean_model_parts_figure.log",
     benchmark:
         f"{BENCH}/mean_model_parts_figure.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        size=config["figures"]["parts_size"],
+        dpi=config["figures"]["dpi"],
+        detail_disc=config["figures"]["detail_disc"],
     script:
         "../scripts/mean_model_parts_figure.py"
 
@@ -53,20 +61,24 @@ rule parameter_histograms_figure:
         virtual=f"{R}/virtual_cohort.csv",
         patients=f"{R}/patients/parameters.csv",
     output:
-        report(f"{R}/figures/parameter_histograms.png", category="3. Virtual cohort",
-               caption="../report/parameter_histograms.rst", labels={"figure": "parameter histograms"}),
+        report(
+            f"{R}/figures/parameter_histograms.png",
+            category="3. Virtual cohort",
+            caption="../report/parameter_histograms.rst",
+            labels={"figure": "parameter histograms"},
+        ),
+    log:
+        f"{LOGS}/parameter_histograms_figure.log",
+    benchmark:
+        f"{BENCH}/parameter_histograms_figure.tsv"
+    conda:
+        "../../environment.yml"
+    threads: 1
     params:
         size=config["figures"]["histogram_size"],
         dpi=config["figures"]["dpi"],
         parameters=config["figures"]["histogram_parameters"],
         criteria=config["synthetic"]["criteria"],
-    log:
-        f"{LOGS}/parameter_histograms_figure.log",
-    benchmark:
-        f"{BENCH}/parameter_histograms_figure.tsv"
-    threads: 1
-    conda:
-        "../../environment.yml"
     script:
         "../scripts/parameter_histograms_figure.py"
 
@@ -76,18 +88,22 @@ rule quality_summary_figure:
         shards=expand(f"{R}/shards/{{shard}}.quality.csv", shard=SHARDS),
         table3=f"{R}/template/mean_quality.csv",
     output:
-        report(f"{R}/figures/quality_summary.png", category="3. Virtual cohort",
-               caption="../report/quality_summary.rst", labels={"figure": "mesh quality"}),
-    params:
-        size=config["figures"]["quality_size"],
-        dpi=config["figures"]["dpi"],
+        report(
+            f"{R}/figures/quality_summary.png",
+            category="3. Virtual cohort",
+            caption="../report/quality_summary.rst",
+            labels={"figure": "mesh quality"},
+        ),
     log:
         f"{LOGS}/quality_summary_figure.log",
     benchmark:
         f"{BENCH}/quality_summary_figure.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        size=config["figures"]["quality_size"],
+        dpi=config["figures"]["dpi"],
     script:
         "../scripts/quality_summary_figure.py"
 
@@ -98,18 +114,22 @@ rule personalized_gallery_figure:
         template=f"{R}/template/template.npz",
         hex_ssm=f"{R}/template/hex_ssm.npz",
     output:
-        report(f"{R}/figures/personalized_gallery.png", category="4. Personalized models",
-               caption="../report/personalized_gallery.rst", labels={"figure": "personalized models"}),
-    params:
-        size=config["figures"]["gallery_size"],
-        dpi=config["figures"]["dpi"],
-        n_models=config["figures"]["gallery_patients"],
+        report(
+            f"{R}/figures/personalized_gallery.png",
+            category="4. Personalized models",
+            caption="../report/personalized_gallery.rst",
+            labels={"figure": "personalized models"},
+        ),
     log:
         f"{LOGS}/personalized_gallery_figure.log",
     benchmark:
         f"{BENCH}/personalized_gallery_figure.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        size=config["figures"]["gallery_size"],
+        dpi=config["figures"]["dpi"],
+        n_models=config["figures"]["gallery_patients"],
     script:
         "../scripts/personalized_gallery_figure.py"

@@ -8,15 +8,15 @@ rule measure_patients:
     output:
         table=f"{R}/patients/parameters.csv",
         comparison=f"{R}/patients/sheet_vs_measured.csv",
-    params:
-        measure=config["measure"],
     log:
         f"{LOGS}/measure_patients.log",
     benchmark:
         f"{BENCH}/measure_patients.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        measure=config["measure"],
     script:
         "../scripts/measure_patients.py"
 
@@ -37,8 +37,8 @@ rule descriptive_list:
         f"{LOGS}/descriptive_list.log",
     benchmark:
         f"{BENCH}/descriptive_list.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
     script:
         "../scripts/descriptive_list.py"

@@ -16,18 +16,18 @@ rule personalize:
         report=f"{R}/personalized/report.md",
         info=f"{R}/personalized/info.json",
         models=personalized_models(),
+    log:
+        f"{LOGS}/personalize.log",
+    benchmark:
+        f"{BENCH}/personalize.tsv"
+    conda:
+        "../../environment.yml"
+    threads: 1
     params:
         settings=config["personalize"],
         grid_modes=config["grid"]["n_modes"],
         measure=config["measure"],
         hex_type=config["template"]["hex_type"],
         fe=config["fe"],
-    log:
-        f"{LOGS}/personalize.log",
-    benchmark:
-        f"{BENCH}/personalize.tsv"
-    threads: 1
-    conda:
-        "../../environment.yml"
     script:
         "../scripts/personalize.py"

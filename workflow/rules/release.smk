@@ -14,16 +14,16 @@ rule release:
         unpack(release_inputs),
     output:
         RELEASE_BAG,
-    params:
-        release=config["release"],
-        hex_type=config["template"]["hex_type"],
-        fe=config.get("fe"),  # materials of the decks: `export --release` writes the same decks
     log:
         f"{LOGS}/release.log",
     benchmark:
         f"{BENCH}/release.tsv"
-    threads: 2
     conda:
         "../../environment.yml"
+    threads: 2
+    params:
+        release=config["release"],
+        hex_type=config["template"]["hex_type"],
+        fe=config.get("fe"),  # materials of the decks: `export --release` writes the same decks
     script:
         "../scripts/release.py"

@@ -9,18 +9,18 @@ rule rom_model:
     output:
         table=f"{R}/rom/{{model_id}}.csv",
         runs=directory(f"{R}/rom/{{model_id}}"),
-    wildcard_constraints:
-        model_id=r"model_\d{5}",
-    params:
-        rom=config["rom"],
-        fe=config["fe"],
     log:
         f"{LOGS}/rom_model/{{model_id}}.log",
     benchmark:
         f"{BENCH}/rom_model/{{model_id}}.tsv"
-    threads: config["rom"]["threads"]
+    wildcard_constraints:
+        model_id=r"model_\d{5}",
     conda:
         "../../environment.yml"
+    threads: config["rom"]["threads"]
+    params:
+        rom=config["rom"],
+        fe=config["fe"],
     script:
         "../scripts/rom_model.py"
 
@@ -32,15 +32,15 @@ rule rom_validation:
         table=f"{R}/rom/validation.csv",
         all_effect=f"{R}/rom/all_effect.csv",
         figure=f"{R}/rom/validation.png",
-    params:
-        rom=config["rom"],
-        model=config["rom"]["model"],
     log:
         f"{LOGS}/rom_validation.log",
     benchmark:
         f"{BENCH}/rom_validation.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        rom=config["rom"],
+        model=config["rom"]["model"],
     script:
         "../scripts/rom_validation.py"

@@ -6,17 +6,17 @@ rule gpa:
         f"{R}/cohort/cohort.npz",
     output:
         f"{R}/ssm/aligned.npz",
-    params:
-        scaling=config["ssm"]["scaling"],
-        tol_mm=config["ssm"]["gpa_tol_mm"],
-        max_iter=config["ssm"]["gpa_max_iter"],
     log:
         f"{LOGS}/gpa.log",
     benchmark:
         f"{BENCH}/gpa.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        scaling=config["ssm"]["scaling"],
+        tol_mm=config["ssm"]["gpa_tol_mm"],
+        max_iter=config["ssm"]["gpa_max_iter"],
     script:
         "../scripts/gpa.py"
 
@@ -27,17 +27,20 @@ rule pca:
     output:
         ssm=f"{R}/ssm/ssm.npz",
         table=f"{R}/ssm/compactness.csv",
-        figure=report(f"{R}/ssm/compactness.png", category="1. Statistical shape model",
-                      caption="../report/compactness.rst"),
-    params:
-        variance_threshold=config["ssm"]["variance_threshold"],
+        figure=report(
+            f"{R}/ssm/compactness.png",
+            category="1. Statistical shape model",
+            caption="../report/compactness.rst",
+        ),
     log:
         f"{LOGS}/pca.log",
     benchmark:
         f"{BENCH}/pca.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        variance_threshold=config["ssm"]["variance_threshold"],
     script:
         "../scripts/pca.py"
 
@@ -48,17 +51,19 @@ rule ssm_quality:
         ssm=f"{R}/ssm/ssm.npz",
     output:
         table=f"{R}/ssm/quality.csv",
-        figure=report(f"{R}/ssm/quality.png", category="1. Statistical shape model",
-                      caption="../report/quality.rst"),
-    params:
-        quality=config["ssm"]["quality"],
+        figure=report(
+            f"{R}/ssm/quality.png",
+            category="1. Statistical shape model",
+            caption="../report/quality.rst",
+        ),
     log:
         f"{LOGS}/ssm_quality.log",
     benchmark:
         f"{BENCH}/ssm_quality.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        quality=config["ssm"]["quality"],
     script:
         "../scripts/ssm_quality.py"
-

@@ -8,15 +8,15 @@ rule hex_template:
     output:
         npz=f"{R}/template/template.npz",
         vtu=f"{R}/template/template.vtu",
-    params:
-        resolution=config["template"]["resolution"],
     log:
         f"{LOGS}/hex_template.log",
     benchmark:
         f"{BENCH}/hex_template.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        resolution=config["template"]["resolution"],
     script:
         "../scripts/hex_template.py"
 
@@ -30,15 +30,15 @@ rule morph_template:
         nodes=f"{R}/template/mean_hex.npz",
         vtu=f"{R}/template/mean_hex.vtu",
         report=f"{R}/template/morph_report.csv",
-    params:
-        morph=config["morph"],
     log:
         f"{LOGS}/morph_template.log",
     benchmark:
         f"{BENCH}/morph_template.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        morph=config["morph"],
     script:
         "../scripts/morph_template.py"
 
@@ -52,17 +52,17 @@ rule hex_ssm:
     output:
         ssm=f"{R}/template/hex_ssm.npz",
         report=f"{R}/template/transfer_report.csv",
-    params:
-        transfer=config["hex_ssm"]["transfer"],
-        min_disc_height_mm=config["hex_ssm"].get("min_disc_height_mm"),
-        grid=config["grid"],
     log:
         f"{LOGS}/hex_ssm.log",
     benchmark:
         f"{BENCH}/hex_ssm.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        transfer=config["hex_ssm"]["transfer"],
+        min_disc_height_mm=config["hex_ssm"].get("min_disc_height_mm"),
+        grid=config["grid"],
     script:
         "../scripts/hex_ssm.py"
 
@@ -73,16 +73,16 @@ rule template_inp:
         nodes=f"{R}/template/mean_hex.npz",
     output:
         f"{R}/template/Mean_Model (Template).inp",
-    params:
-        hex_type=config["template"]["hex_type"],
-        fe=config["fe"],
     log:
         f"{LOGS}/template_inp.log",
     benchmark:
         f"{BENCH}/template_inp.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        hex_type=config["template"]["hex_type"],
+        fe=config["fe"],
     script:
         "../scripts/template_inp.py"
 
@@ -95,20 +95,20 @@ rule model_files:
         cohort=f"{R}/cohort/cohort.npz",
     output:
         f"{R}/models/{{model_id}}.{{ext}}",
-    wildcard_constraints:
-        model_id=r"model_\d{5}",
-        ext="inp|stl|vtu",
-    params:
-        grid=config["grid"],
-        hex_type=config["template"]["hex_type"],
-        fe=config["fe"],
     log:
         f"{LOGS}/model_files/{{model_id}}.{{ext}}.log",
     benchmark:
         f"{BENCH}/model_files/{{model_id}}.{{ext}}.tsv"
-    threads: 1
+    wildcard_constraints:
+        model_id=r"model_\d{5}",
+        ext="inp|stl|vtu",
     conda:
         "../../environment.yml"
+    threads: 1
+    params:
+        grid=config["grid"],
+        hex_type=config["template"]["hex_type"],
+        fe=config["fe"],
     script:
         "../scripts/model_files.py"
 
@@ -124,8 +124,8 @@ rule template_quality:
         f"{LOGS}/template_quality.log",
     benchmark:
         f"{BENCH}/template_quality.tsv"
-    threads: 1
     conda:
         "../../environment.yml"
+    threads: 1
     script:
         "../scripts/template_quality.py"

@@ -3,12 +3,12 @@
 import numpy as np
 import pandas as pd
 
-from spinecohort.cohort import load_cohort_npz
-from spinecohort.hex_ssm import inverted_over_grid, transfer_fields
-from spinecohort.hex_template import HexTemplate
+from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.logs import to_file
-from spinecohort.pca import SSM
-from spinecohort.store import grid_weights
+from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.ssm.model import SSM
+from spinecohort.store.zarr_store import grid_weights
 
 with to_file(snakemake.log[0]) as log:
     template = HexTemplate.load(snakemake.input.template)

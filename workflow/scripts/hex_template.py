@@ -1,17 +1,25 @@
 # Adapter: build the hex template on the SSM mean (placed by the mean's endplate frames).
-from spinecohort.abaqus import write_vtu
-from spinecohort.cohort import load_cohort_npz
-from spinecohort.fe_export import fe_model
-from spinecohort.hex_template import TEMPLATE_RESOLUTIONS, build_template
+from spinecohort.cohort.loading import load_cohort_npz
+from spinecohort.fe.abaqus import write_vtu
+from spinecohort.fe.export import fe_model
 from spinecohort.logs import to_file
-from spinecohort.pca import SSM
+from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
+from spinecohort.ssm.model import SSM
 
 with to_file(snakemake.log[0]) as log:
     ssm = SSM.load(snakemake.input.ssm)
     cohort = load_cohort_npz(snakemake.input.cohort)
-    template = build_template(ssm.mean, cohort.faces, cohort.landmarks, TEMPLATE_RESOLUTIONS[snakemake.params.resolution])
-    log.info("template: %d nodes (%d hex nodes), %d hexes, %d surface triangles, %d ligaments, %d element sets",
-             template.n_nodes, template.n_hex_nodes, len(template.hexes), len(template.tris),
-             len(template.ligaments), len(template.elsets))
+    template = build_template(
+        ssm.mean, cohort.faces, cohort.landmarks, TEMPLATE_RESOLUTIONS[snakemake.params.resolution]
+    )
+    log.info(
+        "template: %d nodes (%d hex nodes), %d hexes, %d surface triangles, %d ligaments, %d element sets",
+        template.n_nodes,
+        template.n_hex_nodes,
+        len(template.hexes),
+        len(template.tris),
+        len(template.ligaments),
+        len(template.elsets),
+    )
     template.save(snakemake.output.npz)
     write_vtu(fe_model(template), snakemake.output.vtu)

@@ -1,22 +1,27 @@
 # Adapter: morph the template onto the SSM mean (multilayer BCPD), report distances per part.
 import numpy as np
 
-from spinecohort.abaqus import write_vtu
-from spinecohort.cohort import load_cohort_npz
-from spinecohort.fe_export import fe_model
-from spinecohort.hex_template import HexTemplate
+from spinecohort.cohort.loading import load_cohort_npz
+from spinecohort.fe.abaqus import write_vtu
+from spinecohort.fe.export import fe_model
 from spinecohort.logs import Progress, to_file
-from spinecohort.morph import MorphParameters, morph_template
-from spinecohort.pca import SSM
-from spinecohort.quality import scaled_jacobian
+from spinecohort.mesh.morph import MorphParameters, morph_template
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.ssm.model import SSM
 
 with to_file(snakemake.log[0]) as log:
     template = HexTemplate.load(snakemake.input.template)
     ssm = SSM.load(snakemake.input.ssm)
     cohort = load_cohort_npz(snakemake.input.cohort)
-    nodes, report = morph_template(template, ssm.mean, cohort.faces, cohort.landmarks,
-                                   MorphParameters(**snakemake.params.morph),
-                                   progress=Progress("parts morphed", 18))
+    nodes, report = morph_template(
+        template,
+        ssm.mean,
+        cohort.faces,
+        cohort.landmarks,
+        MorphParameters(**snakemake.params.morph),
+        progress=Progress("parts morphed", 18),
+    )
     sj = scaled_jacobian(nodes, template.hexes)
     n_bad = int((sj <= 0).sum())
     log.info("morphed mean: min scaled Jacobian %.3f, %d inverted of %d hexes", sj.min(), n_bad, len(sj))

@@ -12,7 +12,13 @@ with to_file(snakemake.log[0]) as log:
             tables[key] = pd.read_csv(path)
         except Exception as exc:
             raise ValueError(f"{path}: cannot read the parameter table ({exc})") from exc
-    shares = parameter_histograms_figure(tables["virtual"], tables["patients"], dict(snakemake.params.criteria),
-                                         list(snakemake.params.parameters), snakemake.output[0],
-                                         tuple(snakemake.params.size), dpi=snakemake.params.dpi)
+    shares = parameter_histograms_figure(
+        tables["virtual"],
+        tables["patients"],
+        dict(snakemake.params.criteria),
+        list(snakemake.params.parameters),
+        snakemake.output[0],
+        tuple(snakemake.params.size),
+        dpi=snakemake.params.dpi,
+    )
     log.info("share above each inclusion threshold:\n%s", shares.to_string(index=False))

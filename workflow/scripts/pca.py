@@ -1,11 +1,11 @@
 # Adapter: PCA of the aligned shapes, compactness table and plot.
 import numpy as np
 
-from spinecohort.cohort import atomic_path, commit
+from spinecohort.cohort.loading import atomic_path, commit
 from spinecohort.figures import compactness_plot
 from spinecohort.logs import to_file
-from spinecohort.pca import build_ssm
-from spinecohort.ssm_quality import compactness_table
+from spinecohort.ssm.model import build_ssm
+from spinecohort.ssm.quality import compactness_table
 
 with to_file(snakemake.log[0]) as log:
     with np.load(snakemake.input[0]) as z:
@@ -13,8 +13,13 @@ with to_file(snakemake.log[0]) as log:
     ssm = build_ssm(aligned)
     threshold = snakemake.params.variance_threshold
     n = ssm.modes_for_variance(threshold)
-    log.info("%d modes; %d explain %.1f %% of the variance (first 5: %s %%)", ssm.n_modes, n,
-             100 * ssm.cumulative_variance[n - 1], np.round(100 * ssm.explained_variance_ratio[:5], 1))
+    log.info(
+        "%d modes; %d explain %.1f %% of the variance (first 5: %s %%)",
+        ssm.n_modes,
+        n,
+        100 * ssm.cumulative_variance[n - 1],
+        np.round(100 * ssm.explained_variance_ratio[:5], 1),
+    )
     tmp = atomic_path(snakemake.output.ssm)
     with open(tmp, "wb") as fh:
         ssm.save(fh, modes_for_threshold=n, variance_threshold=threshold)

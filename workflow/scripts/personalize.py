@@ -6,14 +6,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.abaqus import write_inp
-from spinecohort.cohort import atomic_path, commit, load_cohort_npz
-from spinecohort.fe_export import fe_model, materials_from_config
-from spinecohort.hex_ssm import HexSSM
-from spinecohort.hex_template import HexTemplate
+from spinecohort.cohort.loading import atomic_path, commit, load_cohort_npz
+from spinecohort.fe.abaqus import write_inp
+from spinecohort.fe.export import fe_model, materials_from_config
 from spinecohort.logs import to_file
-from spinecohort.pca import SSM
+from spinecohort.mesh.hex_ssm import HexSSM
+from spinecohort.mesh.template import HexTemplate
 from spinecohort.personalize import Settings, personalize_cohort, personalized_hex, report_markdown
+from spinecohort.ssm.model import SSM
 
 with to_file(snakemake.log[0]) as log:
     settings = Settings.from_config(snakemake.params.settings, snakemake.params.grid_modes)
@@ -41,14 +41,27 @@ with to_file(snakemake.log[0]) as log:
     for _, row in table[table.method == "fit"].iterrows():  # one FE model per patient
         w = row[[f"b{j + 1}" for j in range(k)]].to_numpy(float)
         pts, rep = personalized_hex(template, hex_ssm, w, row["posture_deg"], name=f"patient {row['ID']}")
-        heading = (f"spinecohort personalized model of patient {row['ID']}: weights (SD) {np.round(w, 4).tolist()}, "
-                   f"posture {row['posture_deg']:.3f} deg")
+        heading = (
+            f"spinecohort personalized model of patient {row['ID']}: weights (SD) {np.round(w, 4).tolist()}, "
+            f"posture {row['posture_deg']:.3f} deg"
+        )
         if row["ID"] in out:
-            write_inp(fe_model(template, pts, hex_type=snakemake.params.hex_type, heading=heading, materials=materials),
-                      out[row["ID"]], provenance=heading)
-        checks.append({"ID": row["ID"], "method": "fit", **{c: rep[c] for c in
-                       ("invalid_before", "invalid_after", "min_sj_before", "min_sj_after", "nodes_moved")},
-                       "distraction_mm": rep.get("distraction_mm", 0.0)})  # disc opening of the hex SSM's contact map
+            write_inp(
+                fe_model(template, pts, hex_type=snakemake.params.hex_type, heading=heading, materials=materials),
+                out[row["ID"]],
+                provenance=heading,
+            )
+        checks.append(
+            {
+                "ID": row["ID"],
+                "method": "fit",
+                **{
+                    c: rep[c]
+                    for c in ("invalid_before", "invalid_after", "min_sj_before", "min_sj_after", "nodes_moved")
+                },
+                "distraction_mm": rep.get("distraction_mm", 0.0),
+            }
+        )  # disc opening of the hex SSM's contact map
         log.info("%s: Jacobian check %s", row["ID"], {c: v for c, v in rep.items() if c != "level_offsets_mm"})
     table = table.merge(pd.DataFrame(checks), on=["ID", "method"], how="left")
     tmp = atomic_path(snakemake.output.table)

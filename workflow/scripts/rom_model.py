@@ -1,21 +1,29 @@
 # Adapter: the range of motion of one model (its exported .inp) for every configured extraction and load case.
 import numpy as np
 
-from spinecohort.abaqus import read_inp_nodes
-from spinecohort.calculix import find_ccx
-from spinecohort.fe_export import materials_from_config
-from spinecohort.hex_template import HexTemplate
+from spinecohort.fe.abaqus import read_inp_nodes
+from spinecohort.fe.calculix import find_ccx
+from spinecohort.fe.export import materials_from_config
 from spinecohort.logs import to_file
-from spinecohort.rom import solve_model
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.rom.analysis import solve_model
 
 with to_file(snakemake.log[0]) as log:
     find_ccx()  # a clear error naming the Debian package before any work
     template = HexTemplate.load(snakemake.input.template)
     ids, points = read_inp_nodes(snakemake.input.deck)
     if len(points) != template.n_nodes or not np.array_equal(ids, np.arange(1, template.n_nodes + 1)):
-        raise ValueError(f"{snakemake.input.deck}: {len(points)} nodes with ids {ids[:3]}..., but the template "
-                         f"{snakemake.input.template} has {template.n_nodes} nodes numbered 1..N")
-    table = solve_model(template, points, snakemake.params.rom, snakemake.output.runs, snakemake.wildcards.model_id,
-                        materials_from_config(snakemake.params.fe))
+        raise ValueError(
+            f"{snakemake.input.deck}: {len(points)} nodes with ids {ids[:3]}..., but the template "
+            f"{snakemake.input.template} has {template.n_nodes} nodes numbered 1..N"
+        )
+    table = solve_model(
+        template,
+        points,
+        snakemake.params.rom,
+        snakemake.output.runs,
+        snakemake.wildcards.model_id,
+        materials_from_config(snakemake.params.fe),
+    )
     table.to_csv(snakemake.output.table, index=False)
     log.info("ROM (deg):\n%s", table[["mode", "variant", "segment", "load_case", "rom_deg", "solve_s"]].to_string())

@@ -2,7 +2,7 @@
 import pandas as pd
 
 from spinecohort.logs import to_file
-from spinecohort.rom import all_effect, validate, validation_figure
+from spinecohort.rom.analysis import all_effect, validate, validation_figure
 
 with to_file(snakemake.log[0]) as log:
     rom = snakemake.params.rom
@@ -11,5 +11,9 @@ with to_file(snakemake.log[0]) as log:
     val.to_csv(snakemake.output.table, index=False)
     all_effect(table).to_csv(snakemake.output.all_effect, index=False)
     validation_figure(val, snakemake.output.figure, title=snakemake.params.model)
-    log.info("validation:\n%s", val[["segment", "motion", "side", "mode", "model_deg", "accept_low", "accept_high",
-                                      "in_range", "distance_deg"]].to_string())
+    log.info(
+        "validation:\n%s",
+        val[
+            ["segment", "motion", "side", "mode", "model_deg", "accept_low", "accept_high", "in_range", "distance_deg"]
+        ].to_string(),
+    )

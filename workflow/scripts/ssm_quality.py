@@ -3,8 +3,8 @@ import numpy as np
 
 from spinecohort.figures import quality_plot
 from spinecohort.logs import to_file
-from spinecohort.pca import SSM
-from spinecohort.ssm_quality import generalization, specificity
+from spinecohort.ssm.model import SSM
+from spinecohort.ssm.quality import generalization, specificity
 
 with to_file(snakemake.log[0]) as log:
     q = snakemake.params.quality

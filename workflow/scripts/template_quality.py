@@ -2,9 +2,9 @@
 import numpy as np
 import pandas as pd
 
-from spinecohort.hex_template import HexTemplate
 from spinecohort.logs import to_file
-from spinecohort.quality import hex_quality_metrics, table3_summary
+from spinecohort.mesh.quality import hex_quality_metrics, table3_summary
+from spinecohort.mesh.template import HexTemplate
 
 with to_file(snakemake.log[0]) as log:
     template = HexTemplate.load(snakemake.input.template)
@@ -13,7 +13,8 @@ with to_file(snakemake.log[0]) as log:
     metrics = hex_quality_metrics(nodes, template.hexes)
     part = template.part_of_hex()
     pd.DataFrame({"element": np.arange(len(part)), "tissue": part, **metrics}).to_csv(
-        snakemake.output.elements, index=False, float_format="%.5g")
+        snakemake.output.elements, index=False, float_format="%.5g"
+    )
     table = table3_summary(metrics, part)
     log.info("Table 3 of the morphed mean:\n%s", table.to_string(index=False))
     table.to_csv(snakemake.output.table3, index=False)

@@ -17,7 +17,7 @@ below equal config/config.yaml, each with its literature source:
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
   switchable.  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
   export deck uses one table per group at the group's mean rest length in the model; the ROM decks
-  (`spinecohort.rom`) use one table per ligament element.
+  (`spinecohort.rom.analysis`) use one table per ligament element.
 """
 
 from __future__ import annotations
@@ -27,13 +27,23 @@ from pathlib import Path
 
 import numpy as np
 
-from .abaqus import FEModel, LinearElastic, MooneyRivlin, Orientation, Section, UserMaterial, write_inp, write_vtu
-from .hex_template import LIGAMENT_GROUPS, HexTemplate
+from spinecohort.fe.abaqus import (
+    FEModel,
+    LinearElastic,
+    MooneyRivlin,
+    Orientation,
+    Section,
+    UserMaterial,
+    write_inp,
+    write_vtu,
+)
+from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate
 
 
 @dataclass(frozen=True)
 class LigamentLaw:
     """Bilinear tension-only ligament: E below / above the transition strain (MPa), area (mm^2)."""
+
     e1_mpa: float
     e2_mpa: float
     transition_strain: float
@@ -43,6 +53,7 @@ class LigamentLaw:
 @dataclass(frozen=True)
 class FEMaterials:
     """Every material constant of the FE models (MPa, 1/MPa, mm^2, deg)."""
+
     cortical: tuple[float, float] = (12000.0, 0.3)  # E MPa, nu
     cancellous: tuple[float, float] = (100.0, 0.2)
     cep: tuple[float, float] = (24.0, 0.4)
@@ -60,9 +71,18 @@ class FEMaterials:
         """ELASTIC_FIBER constants: C10, D1, then (ax, ay, k1, k2) per family in the cylindrical system
         (a = fibre direction; ccx sets az = +sqrt(1 - ax^2 - ay^2), the axial component)."""
         c = float(np.cos(np.radians(self.fibre_angle_deg)))  # circumferential component; az = sin
-        return (self.annulus_c10_mpa, self.annulus_d1_per_mpa,
-                0.0, float(c), self.fibre_k1_mpa, self.fibre_k2,
-                0.0, float(-c), self.fibre_k1_mpa, self.fibre_k2)
+        return (
+            self.annulus_c10_mpa,
+            self.annulus_d1_per_mpa,
+            0.0,
+            float(c),
+            self.fibre_k1_mpa,
+            self.fibre_k2,
+            0.0,
+            float(-c),
+            self.fibre_k1_mpa,
+            self.fibre_k2,
+        )
 
 
 #: Goel et al. 1995 bilinear ligaments (E1, E2 MPa, transition strain, area mm^2), via Kim et al. 2013.
@@ -83,8 +103,10 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
     """FEMaterials from the config's ``fe:`` block (None -> the defaults, equal to config/config.yaml)."""
     if fe is None:
         return DEFAULT_MATERIALS
-    ligs = {g: LigamentLaw(float(v["E1_mpa"]), float(v["E2_mpa"]), float(v["transition_strain"]),
-                           float(v["area_mm2"])) for g, v in fe["ligaments"].items()}
+    ligs = {
+        g: LigamentLaw(float(v["E1_mpa"]), float(v["E2_mpa"]), float(v["transition_strain"]), float(v["area_mm2"]))
+        for g, v in fe["ligaments"].items()
+    }
     missing = set(LIGAMENT_GROUPS) - set(ligs)
     if missing:
         raise ValueError(f"fe.ligaments lacks the groups {sorted(missing)}")
@@ -95,14 +117,17 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         cep=(float(fe["cep"]["E_mpa"]), float(fe["cep"]["nu"])),
         shell_thickness_mm=float(fe["shell_thickness_mm"]),
         nucleus=(float(np_["c10_mpa"]), float(np_["c01_mpa"]), float(np_["d1_per_mpa"])),
-        annulus_c10_mpa=float(af["c10_mpa"]), annulus_d1_per_mpa=float(af["d1_per_mpa"]),
-        fibre_k1_mpa=float(fib["k1_mpa"]), fibre_k2=float(fib["k2"]), fibre_angle_deg=float(fib["angle_deg"]),
-        ligaments=ligs, include_all=bool(fe["include_all"]),
+        annulus_c10_mpa=float(af["c10_mpa"]),
+        annulus_d1_per_mpa=float(af["d1_per_mpa"]),
+        fibre_k1_mpa=float(fib["k1_mpa"]),
+        fibre_k2=float(fib["k2"]),
+        fibre_angle_deg=float(fib["angle_deg"]),
+        ligaments=ligs,
+        include_all=bool(fe["include_all"]),
     )
 
 
-def ligament_force_n(law: LigamentLaw, strain: np.ndarray, toe_strain: float = 0.01,
-                     blend: float = 0.2) -> np.ndarray:
+def ligament_force_n(law: LigamentLaw, strain: np.ndarray, toe_strain: float = 0.01, blend: float = 0.2) -> np.ndarray:
     """Tension-only ligament force (N) at the given engineering strains: the bilinear law (E1 A up to the
     transition strain, E2 A beyond) with its two corners rounded so that the slope is continuous (C1):
     a quadratic toe from 0 to `toe_strain` (slope 0 -> E1 A; the linear part shifts by E1 A toe / 2, a
@@ -124,16 +149,16 @@ def ligament_force_n(law: LigamentLaw, strain: np.ndarray, toe_strain: float = 0
     return np.where(e <= 0, 0.0, np.interp(e, grid, f))
 
 
-def ligament_table(law: LigamentLaw, rest_length_mm: float, max_strain: float = 2.0,
-                   toe_strain: float = 0.01, blend: float = 0.2) -> tuple[tuple[float, float], ...]:
+def ligament_table(
+    law: LigamentLaw, rest_length_mm: float, max_strain: float = 2.0, toe_strain: float = 0.01, blend: float = 0.2
+) -> tuple[tuple[float, float], ...]:
     """(force N, elongation mm) pairs, ascending, of `ligament_force_n` for a spring of the given rest
     length: zero force in compression (tension only in an NLGEOM step), 6 points across the toe and the
     transition each, extended to `max_strain` (ccx holds the force constant past the table's end)."""
     if not rest_length_mm > 0:
         raise ValueError(f"ligament rest length must be > 0 mm, got {rest_length_mm}")
     et, w = law.transition_strain, blend * law.transition_strain
-    strains = np.unique(np.concatenate([np.linspace(0.0, toe_strain, 7), np.linspace(et - w, et + w, 7),
-                                        [max_strain]]))
+    strains = np.unique(np.concatenate([np.linspace(0.0, toe_strain, 7), np.linspace(et - w, et + w, 7), [max_strain]]))
     strains = strains[(strains >= 0) & (strains <= max_strain)]
     force = ligament_force_n(law, strains, toe_strain, blend)
     rows = [(0.0, -float(rest_length_mm))] + [(float(f), float(e * rest_length_mm)) for f, e in zip(force, strains)]
@@ -142,22 +167,26 @@ def ligament_table(law: LigamentLaw, rest_length_mm: float, max_strain: float = 
 
 def material_cards(mats: FEMaterials) -> list:
     """The named materials every deck carries: CORTICAL, CANCELLOUS, CEP, NP, ELASTIC_FIBER_AF."""
-    return [LinearElastic("CORTICAL", *mats.cortical), LinearElastic("CANCELLOUS", *mats.cancellous),
-            LinearElastic("CEP", *mats.cep), MooneyRivlin("NP", *mats.nucleus),
-            UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
+    return [
+        LinearElastic("CORTICAL", *mats.cortical),
+        LinearElastic("CANCELLOUS", *mats.cancellous),
+        LinearElastic("CEP", *mats.cep),
+        MooneyRivlin("NP", *mats.nucleus),
+        UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants()),
+    ]
 
 
 def disc_orientations(template: HexTemplate, points: np.ndarray) -> dict[str, Orientation]:
     """Cylindrical fibre system per disc ('D_L4L5' -> OR_D_L4L5): axis from the centre of the disc's lower
     bounding node layer to the centre of its upper one (mm)."""
-    from .hex_template import disc_runs
+    from spinecohort.mesh.template import disc_runs
 
     n2 = len(template.grid.nodes)
     out = {}
     for first, end in disc_runs(template.layers):
         name = "D_" + template.layers[first]["disc"].replace("-", "")
-        lo = points[(first - 1) * n2:first * n2].mean(0)
-        hi = points[end * n2:(end + 1) * n2].mean(0)
+        lo = points[(first - 1) * n2 : first * n2].mean(0)
+        hi = points[end * n2 : (end + 1) * n2].mean(0)
         out[name] = Orientation(f"OR_{name}", tuple(map(float, lo)), tuple(map(float, hi)))
     return out
 
@@ -170,9 +199,14 @@ def hex_section(name: str, orientations: dict[str, Orientation]) -> Section:
     return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue))
 
 
-def fe_model(template: HexTemplate, points: np.ndarray | None = None, hex_type: str = "C3D8",
-             include_all: bool | None = None, heading: str = "spinecohort model",
-             materials: FEMaterials | None = None) -> FEModel:
+def fe_model(
+    template: HexTemplate,
+    points: np.ndarray | None = None,
+    hex_type: str = "C3D8",
+    include_all: bool | None = None,
+    heading: str = "spinecohort model",
+    materials: FEMaterials | None = None,
+) -> FEModel:
     """The template as an FEModel with the given node coordinates (default: the template's own).
 
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
@@ -185,8 +219,11 @@ def fe_model(template: HexTemplate, points: np.ndarray | None = None, hex_type: 
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
-    blocks = {"HEXES": (hex_type, template.hexes), "SURFACES": ("S3", template.tris),
-              "LIGAMENTS": ("SPRINGA", template.ligaments[lig_keep])}
+    blocks = {
+        "HEXES": (hex_type, template.hexes),
+        "SURFACES": ("S3", template.tris),
+        "LIGAMENTS": ("SPRINGA", template.ligaments[lig_keep]),
+    }
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}
     lig_new = np.cumsum(lig_keep) - 1
     elsets = {}
@@ -211,13 +248,26 @@ def fe_model(template: HexTemplate, points: np.ndarray | None = None, hex_type: 
             ends = pts[template.ligaments[template.elsets[name]]]
             rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
             sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[group], rest)))
-    return FEModel(nodes=pts, element_blocks=blocks, node_sets=dict(template.nsets), element_sets=elsets,
-                   materials=material_cards(mats), sections=sections, heading=heading,
-                   orientations=list(orientations.values()))
+    return FEModel(
+        nodes=pts,
+        element_blocks=blocks,
+        node_sets=dict(template.nsets),
+        element_sets=elsets,
+        materials=material_cards(mats),
+        sections=sections,
+        heading=heading,
+        orientations=list(orientations.values()),
+    )
 
 
-def write_model_files(template: HexTemplate, points: np.ndarray, out: str | Path, fmt: str,
-                      heading: str = "spinecohort model", materials: FEMaterials | None = None) -> Path:
+def write_model_files(
+    template: HexTemplate,
+    points: np.ndarray,
+    out: str | Path,
+    fmt: str,
+    heading: str = "spinecohort model",
+    materials: FEMaterials | None = None,
+) -> Path:
     """Write one model as ``inp`` (Abaqus/CalculiX deck) or ``vtu``."""
     model = fe_model(template, points, heading=heading, materials=materials)
     if fmt == "inp":
@@ -227,5 +277,13 @@ def write_model_files(template: HexTemplate, points: np.ndarray, out: str | Path
     raise ValueError(f"unknown FE format '{fmt}' (inp | vtu)")
 
 
-__all__ = ["fe_model", "write_model_files", "ligament_table", "materials_from_config", "FEMaterials",
-           "LigamentLaw", "DEFAULT_MATERIALS", "LIGAMENT_GROUPS"]
+__all__ = [
+    "fe_model",
+    "write_model_files",
+    "ligament_table",
+    "materials_from_config",
+    "FEMaterials",
+    "LigamentLaw",
+    "DEFAULT_MATERIALS",
+    "LIGAMENT_GROUPS",
+]

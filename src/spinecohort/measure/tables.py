@@ -7,27 +7,59 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .cohort import atomic_path, commit
-from .measure import UNITS, parameter_table_header
+from spinecohort.cohort.loading import atomic_path, commit
+from spinecohort.measure.spinopelvic import UNITS, parameter_table_header
 
 NOTES = [
     ("model_id / ID", "", "virtual model index (sum over modes of (w_i + 3) * 7^(5 - i)) / patient ID"),
-    ("PI, PT, SS", "deg", "pelvic incidence, tilt, sacral slope; signed, PI = PT + SS; PT > 0 when S1 is behind the hip axis"),
-    ("LL, LL_L4S1, LL_L1L5", "deg", "lumbar lordosis L1-S1 (GAP's), L4-S1, L1-L5 (superior to inferior endplates); + = lordosis"),
-    ("PI_minus_LL, LL_minus_PI", "deg", "mismatch; the seed's column 'LL-PI' is LL_minus_PI (its inclusion criterion means PI_minus_LL > 10)"),
-    ("GT, GT_T1", "deg", "global tilt with the C7 proxy named in GT_proxy (C7 is not modelled), and with the T1 centre"),
+    (
+        "PI, PT, SS",
+        "deg",
+        "pelvic incidence, tilt, sacral slope; signed, PI = PT + SS; PT > 0 when S1 is behind the hip axis",
+    ),
+    (
+        "LL, LL_L4S1, LL_L1L5",
+        "deg",
+        "lumbar lordosis L1-S1 (GAP's), L4-S1, L1-L5 (superior to inferior endplates); + = lordosis",
+    ),
+    (
+        "PI_minus_LL, LL_minus_PI",
+        "deg",
+        "mismatch; the seed's column 'LL-PI' is LL_minus_PI (its inclusion criterion means PI_minus_LL > 10)",
+    ),
+    (
+        "GT, GT_T1",
+        "deg",
+        "global tilt with the C7 proxy named in GT_proxy (C7 is not modelled), and with the T1 centre",
+    ),
     ("T1SPI, TPA", "deg", "T1 spinopelvic inclination, T1 pelvic angle = PT + T1SPI"),
     ("TK_*", "deg", "thoracic kyphosis between superior endplate of the first and inferior endplate of the last level"),
-    ("Cobb, Cobb2", "deg", "main / largest secondary coronal curve (endplate tilts), end and apex levels in Cobb_upper/lower/apex"),
+    (
+        "Cobb, Cobb2",
+        "deg",
+        "main / largest secondary coronal curve (endplate tilts), end and apex levels in Cobb_upper/lower/apex",
+    ),
     ("RPV, RLL, RSA", "deg", "GAP relative pelvic version, lumbar lordosis, spinopelvic alignment"),
     ("LDI", "%", "lordosis distribution index 100 L4-S1 / L1-S1; NaN (LDI_undefined) when LL <= 1 deg"),
-    ("GAP, GAP_noage, GAP_assumed_age", "points", "GAP score with the patient's age / without the age term / with the assumed age"),
-    ("SVA_T1, SVA_C7est", "mm", "sagittal offset proxies: T1 / extrapolated C7 centre ahead of the S1 posterosuperior corner"),
+    (
+        "GAP, GAP_noage, GAP_assumed_age",
+        "points",
+        "GAP score with the patient's age / without the age term / with the assumed age",
+    ),
+    (
+        "SVA_T1, SVA_C7est",
+        "mm",
+        "sagittal offset proxies: T1 / extrapolated C7 centre ahead of the S1 posterosuperior corner",
+    ),
     ("DH_, DHa_, DHp_<disc>", "mm", "central, anterior and posterior disc heights"),
     ("FH_radius_L/R, HA_width", "mm", "femoral head radii (sphere fits), distance between the head centres"),
-    ("pers_fit_*, pers_proj_*", "SD / deg / mm", "personalized models (personalized/personalization.csv): mode "
-     "weights b, fitted posture, achieved - target error per fitted parameter, per-vertex distance to the patient's "
-     "aligned shape; fit = weights fitted to the parameters (the <ID>.inp model), proj = projection of the shape"),
+    (
+        "pers_fit_*, pers_proj_*",
+        "SD / deg / mm",
+        "personalized models (personalized/personalization.csv): mode "
+        "weights b, fitted posture, achieved - target error per fitted parameter, per-vertex distance to the patient's "
+        "aligned shape; fit = weights fitted to the parameters (the <ID>.inp model), proj = projection of the shape",
+    ),
 ]
 
 
@@ -39,8 +71,12 @@ def compare_with_sheet(measured: pd.DataFrame, sheet: pd.DataFrame) -> pd.DataFr
     s = sheet.set_index("ID").loc[m.index]
     rows = []
     for col in m.columns:
-        if col in s.columns and col != "age" and pd.api.types.is_numeric_dtype(m[col]) \
-                and pd.api.types.is_numeric_dtype(s[col]):
+        if (
+            col in s.columns
+            and col != "age"
+            and pd.api.types.is_numeric_dtype(m[col])
+            and pd.api.types.is_numeric_dtype(s[col])
+        ):
             d = (s[col].astype(float) - m[col].astype(float)).to_numpy()
             d = d[np.isfinite(d)]
             if len(d):
@@ -48,8 +84,9 @@ def compare_with_sheet(measured: pd.DataFrame, sheet: pd.DataFrame) -> pd.DataFr
     return pd.DataFrame(rows, columns=["parameter", "unit", "n", "mean_diff", "mean_abs_diff", "max_abs_diff"])
 
 
-def write_descriptive_list(path: str | Path, patients: pd.DataFrame | None = None,
-                           virtual: pd.DataFrame | None = None) -> None:
+def write_descriptive_list(
+    path: str | Path, patients: pd.DataFrame | None = None, virtual: pd.DataFrame | None = None
+) -> None:
     """``Descriptive_List.xlsx``: sheet 1 the virtual cohort, sheet 2 the patients (as in the seed), then a
     notes sheet with units and definitions; headers carry units, e.g. ``PI [deg]``."""
     tmp = atomic_path(path)
@@ -67,9 +104,16 @@ def write_descriptive_list(path: str | Path, patients: pd.DataFrame | None = Non
 
 
 #: per-model quality columns of the shard tables carried into the virtual-cohort sheet
-QUALITY_SUMMARY = ["min_sj_before", "min_sj_after", "invalid_before", "invalid_after", "nodes_moved",
-                   "max_displacement_mm", "repaired"]
-#: disc-contact columns (present when the hex SSM carries a contact map; spinecohort.contact)
+QUALITY_SUMMARY = [
+    "min_sj_before",
+    "min_sj_after",
+    "invalid_before",
+    "invalid_after",
+    "nodes_moved",
+    "max_displacement_mm",
+    "repaired",
+]
+#: disc-contact columns (present when the hex SSM carries a contact map; spinecohort.mesh.contact)
 CONTACT_SUMMARY = ["min_disc_gap_before_mm", "discs_opened", "distraction_mm"]
 
 
@@ -86,16 +130,20 @@ def virtual_cohort_table(params: list[pd.DataFrame], quality: list[pd.DataFrame]
     out = p.merge(q, on="model_id", how="left", validate="one_to_one")
     missing = out["min_sj_after"].isna()
     if missing.any():
-        raise ValueError(f"{int(missing.sum())} models have no quality row, "
-                         f"e.g. {out.loc[missing, 'model_id'].iloc[0]}")
+        raise ValueError(
+            f"{int(missing.sum())} models have no quality row, e.g. {out.loc[missing, 'model_id'].iloc[0]}"
+        )
     return out.sort_values("model_id", ignore_index=True)
 
 
 def tri_vs_hex_summary(diffs: list[pd.DataFrame]) -> pd.DataFrame:
     """Per parameter over all shards: max |tri - hex| and the mean of the shard means, in its unit."""
     d = pd.concat(diffs, ignore_index=True)
-    out = d.groupby("parameter", sort=False).agg(max_abs_diff=("max_abs_diff", "max"),
-                                                 mean_abs_diff=("mean_abs_diff", "mean")).reset_index()
+    out = (
+        d.groupby("parameter", sort=False)
+        .agg(max_abs_diff=("max_abs_diff", "max"), mean_abs_diff=("mean_abs_diff", "mean"))
+        .reset_index()
+    )
     out.insert(1, "unit", [UNITS.get(c, "") for c in out["parameter"]])
     return out
 
@@ -137,8 +185,10 @@ def write_table_twins(df: pd.DataFrame, csv_path: str | Path) -> list[Path]:
     """Write ``df`` as CSV and as a Parquet twin next to it (same stem; pyarrow, typed columns)."""
     csv_path = Path(csv_path)
     written = []
-    for path, write in ((csv_path, lambda p: df.to_csv(p, index=False, float_format="%.6f")),
-                        (csv_path.with_suffix(".parquet"), lambda p: df.to_parquet(p, index=False))):
+    for path, write in (
+        (csv_path, lambda p: df.to_csv(p, index=False, float_format="%.6f")),
+        (csv_path.with_suffix(".parquet"), lambda p: df.to_parquet(p, index=False)),
+    ):
         tmp = atomic_path(path)
         write(tmp)
         commit(tmp, path)
@@ -168,8 +218,9 @@ def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, floa
     for col, (lo, hi) in ranges.items():
         if col not in table.columns or not pd.api.types.is_numeric_dtype(table[col]):
             numeric = [c for c in table.columns if pd.api.types.is_numeric_dtype(table[c])]
-            raise ValueError(f"no numeric column '{col}' in the virtual cohort; "
-                             f"columns: {', '.join(numeric[:40])}, ...")
+            raise ValueError(
+                f"no numeric column '{col}' in the virtual cohort; columns: {', '.join(numeric[:40])}, ..."
+            )
         v = table[col].to_numpy(float)
         keep &= ~np.isnan(v)
         if lo is not None:

@@ -56,8 +56,9 @@ class GPAResult:
     mean_change_mm: list[float]  # RMS change of the mean per iteration
 
 
-def procrustes_align(shapes: np.ndarray, scaling: bool = False, tol_mm: float = 1e-6, max_iter: int = 100,
-                     reference_index: int = 0) -> GPAResult:
+def procrustes_align(
+    shapes: np.ndarray, scaling: bool = False, tol_mm: float = 1e-6, max_iter: int = 100, reference_index: int = 0
+) -> GPAResult:
     """Generalized Procrustes alignment of (P, N, 3) shapes in mm.
 
     The result is expressed in the frame of the cohort's average posture: the converged mean is finally
@@ -71,7 +72,7 @@ def procrustes_align(shapes: np.ndarray, scaling: bool = False, tol_mm: float = 
     ref = shapes[reference_index] - shapes[reference_index].mean(0)
     size0 = np.sqrt((ref**2).sum())
     history: list[float] = []
-    for it in range(1, max_iter + 1):
+    for _it in range(1, max_iter + 1):
         r, s, t = kabsch(shapes, ref, scaling)
         aligned = apply_transform(shapes, r, s, t)
         mean = aligned.mean(0)

@@ -11,7 +11,7 @@ with the S1 plate at pelvic incidence PI, then rotated about the hip axis by the
 is stacked from S1 upwards by prescribing the sagittal and coronal tilt of every endplate (normal
 ``normalize(tan cor, tan sag, 1)``) and the central height of every disc and body.  Every true parameter is
 a sum of imposed angles or an angle of imposed positions, computed here in the construction frame
-(V = +z, A = +y) without any plane or sphere fit, i.e. independently of :mod:`spinecohort.measure`.
+(V = +z, A = +y) without any plane or sphere fit, i.e. independently of :mod:`spinecohort.measure.spinopelvic`.
 
 Correspondence: every patient is built from the same primitives at the same resolution, so vertex count,
 vertex order and faces are identical across patients (as bi-planar X-ray reconstructions give).  Vertices are
@@ -32,8 +32,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation, Slerp
 
-from .landmarks import DISCS, LEVELS, Landmarks, disc_name
-from .surfaces import closed_loft, segment_superellipsoid, superellipse_ring, torus, uv_sphere
+from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
+from spinecohort.cohort.surfaces import closed_loft, segment_superellipsoid, superellipse_ring, torus, uv_sphere
 
 log = logging.getLogger(__name__)
 
@@ -364,8 +364,9 @@ class _Builder:
 def _body(b: _Builder, level: int, chain: Chain, scale: float, res: Resolution) -> None:
     lv = LEVELS[level]
     bottom, top = pos_inf(level), pos_sup(level)
-    ring = superellipse_ring(BODY_HALF_WIDTH[level] * scale, BODY_HALF_DEPTH[level] * scale,
-                             res.body_theta, ENDPLATE_EXPONENT)
+    ring = superellipse_ring(
+        BODY_HALF_WIDTH[level] * scale, BODY_HALF_DEPTH[level] * scale, res.body_theta, ENDPLATE_EXPONENT
+    )
     t = np.linspace(0.0, 1.0, res.body_wall_rings)
     rots = Slerp([0.0, 1.0], Rotation.from_matrix(chain.frames[[bottom, top]]))(t).as_matrix()
     centres = chain.centres[bottom] + t[:, None] * (chain.centres[top] - chain.centres[bottom])
@@ -416,12 +417,27 @@ def _posterior(b: _Builder, level: int, chain: Chain, scale: float, res: Resolut
         parts += [
             (np.array([sgn * xp, -bd + 1.0, 0.0]), np.array([sgn * xp, yl, 0.0]), 1.4 * pr, pr, up),
             (np.array([sgn * xp, yl, 0.0]), np.array([0.0, ys, -1.0]), 0.45 * h, 2.5, up),
-            (np.array([sgn * xp, yl, 1.0]),
-             np.array([sgn * (xp + tl), yl - (0.1 if lumbar else 0.35) * tl, 3.0]), 4.0 * s, 3.0 * s, up),
-            (np.array([sgn * xp, yl - 1.0, 0.3 * h]), np.array([sgn * xp, yl - 3.0, 0.5 * h + 6.0 * s]),
-             4.0 * s, 3.0 * s, ant),
-            (np.array([sgn * (xp - 1.0), yl - 0.4 * cd, -0.3 * h]),
-             np.array([sgn * (xp - 1.0), yl - 0.4 * cd - 2.0, -0.5 * h - 6.0 * s]), 4.0 * s, 3.0 * s, ant),
+            (
+                np.array([sgn * xp, yl, 1.0]),
+                np.array([sgn * (xp + tl), yl - (0.1 if lumbar else 0.35) * tl, 3.0]),
+                4.0 * s,
+                3.0 * s,
+                up,
+            ),
+            (
+                np.array([sgn * xp, yl - 1.0, 0.3 * h]),
+                np.array([sgn * xp, yl - 3.0, 0.5 * h + 6.0 * s]),
+                4.0 * s,
+                3.0 * s,
+                ant,
+            ),
+            (
+                np.array([sgn * (xp - 1.0), yl - 0.4 * cd, -0.3 * h]),
+                np.array([sgn * (xp - 1.0), yl - 0.4 * cd - 2.0, -0.5 * h - 6.0 * s]),
+                4.0 * s,
+                3.0 * s,
+                ant,
+            ),
         ]
     names = ["spinous"] + [f"{k}_{side}" for side in "LR" for k in ("pedicle", "lamina", "tp", "sap", "iap")]
     n_ring = res.part_rings * res.part_theta
@@ -431,7 +447,11 @@ def _posterior(b: _Builder, level: int, chain: Chain, scale: float, res: Resolut
         start = b.add(f"posterior_{lv}", centre + v @ rot.T, f, 1.0)
         # Ligament anchors by topology (identical for every patient): the apexes sit at p0 / p1, the
         # mid ring's vertices at theta = 90 / 270 deg lie on the +/- up_hint side of the segment.
-        top_apex, mid_up, mid_down = start + n_ring + 1, start + mid_ring + res.part_theta // 4, start + mid_ring + 3 * res.part_theta // 4
+        top_apex, mid_up, mid_down = (
+            start + n_ring + 1,
+            start + mid_ring + res.part_theta // 4,
+            start + mid_ring + 3 * res.part_theta // 4,
+        )
         a = b.anchors
         if name == "spinous":
             a.setdefault("spinous_tip", {})[lv] = top_apex
@@ -460,8 +480,11 @@ def _sacrum(b: _Builder, p: PatientParameters, chain: Chain, res: Resolution) ->
     a = np.interp(arc, arc_knots, a_knots)
     bb = np.interp(arc, arc_knots, b_knots)
     unit = superellipse_ring(1.0, 1.0, res.sacrum_theta, ENDPLATE_EXPONENT)
-    rings = (centre[:, None, :] + (a[:, None] * unit[None, :, 0])[..., None] * ex
-             + (bb[:, None] * unit[None, :, 1])[..., None] * ring_y[:, None, :])
+    rings = (
+        centre[:, None, :]
+        + (a[:, None] * unit[None, :, 0])[..., None] * ex
+        + (bb[:, None] * unit[None, :, 1])[..., None] * ring_y[:, None, :]
+    )
     rings = rings[::-1]  # bottom (apex end) first, S1 plate last
     apex_arc = 105.0 * s
     apex = c0 - np.sin(kappa * apex_arc) / kappa * ez + (1 - np.cos(kappa * apex_arc)) / kappa * ey
@@ -495,14 +518,23 @@ def _pelvis(b: _Builder, p: PatientParameters, res: Resolution) -> None:
             ((sgn * 6 * s, 58 * s, -28 * s), (sgn * (w - 12 * s), 22 * s, -5 * s), 8 * s, 6 * s, up),
             ((sgn * 6 * s, 55 * s, -45 * s), (sgn * (w - 25 * s), -10 * s, -62 * s), 9 * s, 6 * s, up),
             ((sgn * (w - 25 * s), -10 * s, -62 * s), (sgn * (w - 8 * s), -15 * s, -20 * s), 10 * s, 8 * s, up),
-            ((sgn * (w - 2 * s), -8 * s, r + 6 * s), (sgn * (w + 8 * s), -20 * s, 70 * s), 14 * s, 9 * s,
-             np.array([0.0, 1.0, 0.0])),
-            ((sgn * 55 * s, -35 * s, 105 * s), (sgn * (w + 35 * s), 45 * s, 90 * s), 28 * s, 4.5 * s,
-             np.array([sgn * 0.5, 0.0, 1.0])),
+            (
+                (sgn * (w - 2 * s), -8 * s, r + 6 * s),
+                (sgn * (w + 8 * s), -20 * s, 70 * s),
+                14 * s,
+                9 * s,
+                np.array([0.0, 1.0, 0.0]),
+            ),
+            (
+                (sgn * 55 * s, -35 * s, 105 * s),
+                (sgn * (w + 35 * s), 45 * s, 90 * s),
+                28 * s,
+                4.5 * s,
+                np.array([sgn * 0.5, 0.0, 1.0]),
+            ),
         ]
         for k, (p0, p1, hw, ht, hint) in enumerate(segs):
-            v, f = segment_superellipsoid(np.array(p0), np.array(p1), hw, ht, hint,
-                                          res.pelvis_theta, res.pelvis_rings)
+            v, f = segment_superellipsoid(np.array(p0), np.array(p1), hw, ht, hint, res.pelvis_theta, res.pelvis_rings)
             start = b.add("pelvis", v @ rot.T, f)
             if k == 0:
                 # bottom apex (index n_rings * n_theta) and the first ring sit at the symphyseal end
@@ -512,7 +544,10 @@ def _pelvis(b: _Builder, p: PatientParameters, res: Resolution) -> None:
 
 
 def build_patient_mesh(
-    p: PatientParameters, res: Resolution, noise_mm: float = 0.8, noise_width_mm: float = 25.0,
+    p: PatientParameters,
+    res: Resolution,
+    noise_mm: float = 0.8,
+    noise_width_mm: float = 25.0,
     rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, np.ndarray, Landmarks, dict]:
     """Vertices (N, 3) mm in the patient's own (placed) frame, faces (F, 3), landmarks, ground truth."""
@@ -562,7 +597,7 @@ def build_patient_mesh(
         femoral_head={k: remap(v) for k, v in fh.items()},
         body={k: remap(v) for k, v in b.sets["body"].items()},
         pubic_symphysis=remap(b.sets["pubic_symphysis"]),
-        meta={"generator": "spinecohort.synthetic", "resolution": asdict(res)},
+        meta={"generator": "spinecohort.cohort.synthetic", "resolution": asdict(res)},
         anchors={k: inverse[np.array([v[lv] for lv in LEVELS])] for k, v in b.anchors.items()},
     )
     return verts, faces, lm, truth
@@ -577,8 +612,9 @@ def first_use_order(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return uniq[np.argsort(first)]
 
 
-def smooth_noise(points: np.ndarray, rng: np.random.Generator, amplitude_mm: float, width_mm: float,
-                 n_bumps: int = 60) -> np.ndarray:
+def smooth_noise(
+    points: np.ndarray, rng: np.random.Generator, amplitude_mm: float, width_mm: float, n_bumps: int = 60
+) -> np.ndarray:
     """A smooth random displacement field: Gaussian bumps with random centres and vector amplitudes."""
     lo, hi = points.min(0), points.max(0)
     centres = rng.uniform(lo, hi, size=(n_bumps, 3))
@@ -600,8 +636,12 @@ class SyntheticCohort:
 
 
 def generate_cohort(
-    n_patients: int = 42, seed: int = 20240549, resolution: str | Resolution = "default",
-    noise_mm: float = 0.8, criteria: dict = CRITERIA, max_candidates: int = 100000,
+    n_patients: int = 42,
+    seed: int = 20240549,
+    resolution: str | Resolution = "default",
+    noise_mm: float = 0.8,
+    criteria: dict = CRITERIA,
+    max_candidates: int = 100000,
     progress=None,
 ) -> SyntheticCohort:
     """Draw patients until ``n_patients`` meet the inclusion criteria; build their meshes."""

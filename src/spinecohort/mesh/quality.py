@@ -207,9 +207,7 @@ def scaled_jacobian(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
 
 def verdict_jacobian(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
     """Verdict/VTK 'Jacobian': min(alpha_0..alpha_7, alpha_8/64) in mm^3 -> (..., E)."""
-    return _chunked(
-        lambda P: np.minimum(_corner_jacobians_P(P).min(-1), _centre_jacobian_P(P) / 64.0), points, hexes
-    )
+    return _chunked(lambda P: np.minimum(_corner_jacobians_P(P).min(-1), _centre_jacobian_P(P) / 64.0), points, hexes)
 
 
 def nodal_jacobian_ratio(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
@@ -342,8 +340,15 @@ def hex_quality_metrics(points: np.ndarray, hexes: np.ndarray, certify: bool = T
     points, hexes = _check_mesh(points, hexes)
     batch = points if points.ndim == 3 else points[None]
     out = full_metrics_batch_nb(np.ascontiguousarray(batch), hexes)
-    names = ("scaled_jacobian", "jacobian", "nodal_jacobian_ratio", "gauss_jacobian_ratio", "edge_ratio",
-             "min_face_angle_deg", "max_face_angle_deg")
+    names = (
+        "scaled_jacobian",
+        "jacobian",
+        "nodal_jacobian_ratio",
+        "gauss_jacobian_ratio",
+        "edge_ratio",
+        "min_face_angle_deg",
+        "max_face_angle_deg",
+    )
     metrics = {k: out[..., i] for i, k in enumerate(names)}
     if certify:
         metrics["certificate"] = certify_valid(batch, hexes)
@@ -372,8 +377,14 @@ def table3_summary(metrics: dict[str, np.ndarray], part_of_element: np.ndarray) 
     sj = np.asarray(metrics["scaled_jacobian"])
     if part.ndim != 1 or part.shape[0] != sj.shape[-1]:
         raise ValueError(f"part_of_element must have shape ({sj.shape[-1]},), got {part.shape}")
-    missing = {"scaled_jacobian", "nodal_jacobian_ratio", "gauss_jacobian_ratio", "edge_ratio",
-               "min_face_angle_deg", "max_face_angle_deg"} - set(metrics)
+    missing = {
+        "scaled_jacobian",
+        "nodal_jacobian_ratio",
+        "gauss_jacobian_ratio",
+        "edge_ratio",
+        "min_face_angle_deg",
+        "max_face_angle_deg",
+    } - set(metrics)
     if missing:
         raise ValueError(f"metrics lack {sorted(missing)}")
     m = {k: np.asarray(v).reshape(-1, sj.shape[-1]) for k, v in metrics.items()}
@@ -390,8 +401,13 @@ def table3_summary(metrics: dict[str, np.ndarray], part_of_element: np.ndarray) 
     for label in labels:
         sel = np.ones(len(part), bool) if label == "all" else part == label
         n = sel.sum() * m["scaled_jacobian"].shape[0]
-        row = {"part": label, "n_elements": int(sel.sum()), "n_element_instances": int(n),
-               "pct_errors": 100.0 * error[:, sel].mean(), "pct_warnings": 100.0 * warning[:, sel].mean()}
+        row = {
+            "part": label,
+            "n_elements": int(sel.sum()),
+            "n_element_instances": int(n),
+            "pct_errors": 100.0 * error[:, sel].mean(),
+            "pct_warnings": 100.0 * warning[:, sel].mean(),
+        }
         for k in ("nodal_jacobian_ratio", "gauss_jacobian_ratio"):
             v = m[k][:, sel]
             row[f"{k}_min"] = float(v.min())
@@ -518,9 +534,17 @@ def full_metrics_nb(X, conn):
         amin, amax = np.inf, -np.inf
         for i in range(8):
             a, b, c = _CN[i, 0], _CN[i, 1], _CN[i, 2]
-            al = _det3_nb(P[a, 0] - P[i, 0], P[a, 1] - P[i, 1], P[a, 2] - P[i, 2],
-                          P[b, 0] - P[i, 0], P[b, 1] - P[i, 1], P[b, 2] - P[i, 2],
-                          P[c, 0] - P[i, 0], P[c, 1] - P[i, 1], P[c, 2] - P[i, 2])
+            al = _det3_nb(
+                P[a, 0] - P[i, 0],
+                P[a, 1] - P[i, 1],
+                P[a, 2] - P[i, 2],
+                P[b, 0] - P[i, 0],
+                P[b, 1] - P[i, 1],
+                P[b, 2] - P[i, 2],
+                P[c, 0] - P[i, 0],
+                P[c, 1] - P[i, 1],
+                P[c, 2] - P[i, 2],
+            )
             amin = min(amin, al)
             amax = max(amax, al)
         d8 = _detj_nb(P, _DN_CENTRE) * 64.0  # principal axes = 4 dX/du etc. at the centre
@@ -546,7 +570,8 @@ def full_metrics_nb(X, conn):
                 u0, u1, u2 = P[p, 0] - P[c, 0], P[p, 1] - P[c, 1], P[p, 2] - P[c, 2]
                 v0, v1, v2 = P[n, 0] - P[c, 0], P[n, 1] - P[c, 1], P[n, 2] - P[c, 2]
                 cs = (u0 * v0 + u1 * v1 + u2 * v2) / np.sqrt(
-                    (u0 * u0 + u1 * u1 + u2 * u2) * (v0 * v0 + v1 * v1 + v2 * v2))
+                    (u0 * u0 + u1 * u1 + u2 * u2) * (v0 * v0 + v1 * v1 + v2 * v2)
+                )
                 cmax = max(cmax, cs)  # arccos is monotone: only the extreme cosines need it
                 cmin = min(cmin, cs)
         out[e, 5] = np.degrees(np.arccos(min(1.0, cmax)))
@@ -630,8 +655,9 @@ def full_metrics_batch_nb(Xb, conn):
     return out
 
 
-def table3_per_model(points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray,
-                     chunk: int = 49) -> pd.DataFrame:
+def table3_per_model(
+    points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray, chunk: int = 49
+) -> pd.DataFrame:
     """The seed's Table 3 columns per model and part: one row per model of ``points`` (B, n_nodes, 3) mm.
 
     Columns ``<metric>_<part>`` for every part label (e.g. vertebra, AF, NP, CEP): ``pct_errors`` (scaled
@@ -645,18 +671,21 @@ def table3_per_model(points: np.ndarray, hexes: np.ndarray, part_of_element: np.
     labels = list(dict.fromkeys(part.tolist()))
     cols: dict[str, list[np.ndarray]] = {}
     for i in range(0, len(points), chunk):
-        m = full_metrics_batch_nb(np.ascontiguousarray(points[i:i + chunk, :n], dtype=np.float64), conn)
+        m = full_metrics_batch_nb(np.ascontiguousarray(points[i : i + chunk, :n], dtype=np.float64), conn)
         sj, njr, gjr, er, amin, amax = m[..., 0], m[..., 2], m[..., 3], m[..., 4], m[..., 5], m[..., 6]
         error = sj <= 0
-        warning = ~error & ((sj < WARNING_MIN_SCALED_JACOBIAN) | (amin < WARNING_FACE_ANGLE_DEG[0])
-                            | (amax > WARNING_FACE_ANGLE_DEG[1]))
+        warning = ~error & (
+            (sj < WARNING_MIN_SCALED_JACOBIAN) | (amin < WARNING_FACE_ANGLE_DEG[0]) | (amax > WARNING_FACE_ANGLE_DEG[1])
+        )
         for label in labels:
             sel = part == label
-            for name, v in (("pct_errors", 100.0 * error[:, sel].mean(1)),
-                            ("pct_warnings", 100.0 * warning[:, sel].mean(1)),
-                            ("nodal_jacobian_ratio_min", njr[:, sel].min(1)),
-                            ("gauss_jacobian_ratio_min", gjr[:, sel].min(1)),
-                            ("pct_edge_ratio_gt_10", 100.0 * (er[:, sel] > 10).mean(1)),
-                            ("pct_max_face_angle_gt_160", 100.0 * (amax[:, sel] > 160).mean(1))):
+            for name, v in (
+                ("pct_errors", 100.0 * error[:, sel].mean(1)),
+                ("pct_warnings", 100.0 * warning[:, sel].mean(1)),
+                ("nodal_jacobian_ratio_min", njr[:, sel].min(1)),
+                ("gauss_jacobian_ratio_min", gjr[:, sel].min(1)),
+                ("pct_edge_ratio_gt_10", 100.0 * (er[:, sel] > 10).mean(1)),
+                ("pct_max_face_angle_gt_160", 100.0 * (amax[:, sel] > 160).mean(1)),
+            ):
                 cols.setdefault(f"{name}_{label}", []).append(v)
     return pd.DataFrame({k: np.concatenate(v) for k, v in cols.items()})

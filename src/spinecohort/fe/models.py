@@ -10,15 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .contact import resolve_contact
-from .landmarks import DISCS
-from .fe_export import fe_model
-from .hex_ssm import HexSSM
-from .hex_template import HexTemplate
-from .pca import SSM
-from .quality import scaled_jacobian
-from .repair import RepairError, untangle
-from .store import n_models, weights_of
+from spinecohort.cohort.landmarks import DISCS
+from spinecohort.fe.export import fe_model
+from spinecohort.mesh.contact import resolve_contact
+from spinecohort.mesh.hex_ssm import HexSSM
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.repair import RepairError, untangle
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.ssm.model import SSM
+from spinecohort.store.zarr_store import n_models, weights_of
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +56,14 @@ def hex_points_checked(template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarr
         pts = pts[0]
     n = template.n_hex_nodes
     sj = scaled_jacobian(pts[:n], template.hexes)
-    report = {"invalid_before": int((sj <= 0).sum()), "min_sj_before": float(sj.min()),
-              "nodes_moved": 0, "max_displacement_mm": 0.0,
-              "distraction_mm": float(np.linalg.norm(offsets[0], axis=1).max()), "level_offsets_mm": offsets[0]}
+    report = {
+        "invalid_before": int((sj <= 0).sum()),
+        "min_sj_before": float(sj.min()),
+        "nodes_moved": 0,
+        "max_displacement_mm": 0.0,
+        "distraction_mm": float(np.linalg.norm(offsets[0], axis=1).max()),
+        "level_offsets_mm": offsets[0],
+    }
     if report["invalid_before"]:
         fixed, rep = untangle(pts[:n], template.hexes, hex_ssm.mean[:n])
         pts = pts.copy()
@@ -69,8 +74,9 @@ def hex_points_checked(template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarr
     return pts, report
 
 
-def virtual_model(model: str | int, ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, n_modes: int,
-                  levels) -> VirtualModel:
+def virtual_model(
+    model: str | int, ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, n_modes: int, levels
+) -> VirtualModel:
     i = parse_model_id(model, n_modes, levels)
     w = np.asarray(weights_of(i, n_modes, levels), dtype=np.float64)
     try:
@@ -83,13 +89,20 @@ def virtual_model(model: str | int, ssm: SSM, hex_ssm: HexSSM, template: HexTemp
     return VirtualModel(i, w, tri, pts, report)
 
 
-def write_model(vm: VirtualModel, fmt: str, out: str | Path, template: HexTemplate, faces: np.ndarray,
-                hex_type: str = "C3D8", materials=None) -> Path:
+def write_model(
+    vm: VirtualModel,
+    fmt: str,
+    out: str | Path,
+    template: HexTemplate,
+    faces: np.ndarray,
+    hex_type: str = "C3D8",
+    materials=None,
+) -> Path:
     """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model).
 
-    materials: `spinecohort.fe_export.FEMaterials` (default: config/config.yaml's ``fe`` values)."""
-    from .abaqus import write_inp, write_vtu
-    from .stl_io import write_stl
+    materials: `spinecohort.fe.export.FEMaterials` (default: config/config.yaml's ``fe`` values)."""
+    from spinecohort.cohort.stl_io import write_stl
+    from spinecohort.fe.abaqus import write_inp, write_vtu
 
     out = Path(out)
     name = f"model_{vm.model_id:05d}"
@@ -97,8 +110,11 @@ def write_model(vm: VirtualModel, fmt: str, out: str | Path, template: HexTempla
     if fmt == "stl":
         write_stl(out, vm.tri_points, faces, name=name)
     elif fmt == "inp":
-        write_inp(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials), out,
-                  provenance=heading)
+        write_inp(
+            fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials),
+            out,
+            provenance=heading,
+        )
     elif fmt == "vtu":
         write_vtu(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials), out)
     else:

@@ -160,10 +160,13 @@ def rigid_register(
     x = tgt[rng.choice(len(tgt), max_points, replace=False)] if len(tgt) > max_points else tgt
     m, n = len(y), len(x)
     rot, s, t = np.eye(3), 1.0, np.zeros(3)
-    sigma2 = np.sum((x[None, :, :] - y[:, None, :]) ** 2) / (3 * m * n) if m * n < 1e7 else (
-        np.mean(np.sum(x**2, 1)) + np.mean(np.sum(y**2, 1)) - 2 * x.mean(0) @ y.mean(0)) / 3
+    sigma2 = (
+        np.sum((x[None, :, :] - y[:, None, :]) ** 2) / (3 * m * n)
+        if m * n < 1e7
+        else (np.mean(np.sum(x**2, 1)) + np.mean(np.sum(y**2, 1)) - 2 * x.mean(0) @ y.mean(0)) / 3
+    )
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         moved = s * y @ rot.T + t
         d2 = cdist(moved, x, "sqeuclidean")
         c = (2 * np.pi * sigma2) ** 1.5 * w / (1 - w) * m / n
@@ -223,7 +226,7 @@ def icp_rigid(
     rot, s, t = np.eye(3), 1.0, np.zeros(3)
     prev = np.inf
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         moved = s * src @ rot.T + t
         dist, idx = tree.query(moved)
         keep = dist <= reject_factor * max(np.median(dist), 1e-12)
@@ -348,8 +351,7 @@ def _e_step(x, y_hat, sigma2, row_factor, out_const, use_kdtree, kd_radius):
     return nu, nu_x, px
 
 
-def _bcpd(y, x, beta, lam, w, gamma, n_landmarks, max_iter, tol, kd_sigma, kd_scale, kd_radius,
-          similarity, seed):
+def _bcpd(y, x, beta, lam, w, gamma, n_landmarks, max_iter, tol, kd_sigma, kd_scale, kd_radius, similarity, seed):
     """BCPD variational loop in normalised coordinates (alpha uniform: BCPD's kappa = infinity)."""
     m = len(y)
     landmarks = y[farthest_point_sample(y, n_landmarks, seed)]
@@ -364,7 +366,7 @@ def _bcpd(y, x, beta, lam, w, gamma, n_landmarks, max_iter, tol, kd_sigma, kd_sc
     sigma2 = gamma * (np.mean(np.sum(x**2, 1)) + np.mean(np.sum(y**2, 1)) - 2 * x.mean(0) @ y.mean(0)) / 3
     xx = np.sum(x**2, axis=1)
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         use_kd = np.sqrt(sigma2) < kd_sigma
         row_factor = _exp(-1.5 * s**2 * sigma_diag / sigma2) / m * (2 * np.pi * sigma2) ** -1.5
         radius = min(kd_scale * np.sqrt(sigma2), kd_radius)
@@ -395,8 +397,9 @@ def _bcpd(y, x, beta, lam, w, gamma, n_landmarks, max_iter, tol, kd_sigma, kd_sc
             t = x_bar - s * rot @ u_bar
         new_y_hat = s * u @ rot.T + t
         sig_bar2 = float(nu @ sigma_diag / n_hat)
-        sigma2_new = (nu_x @ xx - 2 * np.sum(nu * np.sum(x_hat * new_y_hat, 1))
-                      + np.sum(nu * np.sum(new_y_hat**2, 1))) / (3 * n_hat) + s**2 * sig_bar2
+        sigma2_new = (
+            nu_x @ xx - 2 * np.sum(nu * np.sum(x_hat * new_y_hat, 1)) + np.sum(nu * np.sum(new_y_hat**2, 1))
+        ) / (3 * n_hat) + s**2 * sig_bar2
         sigma2_new = max(float(sigma2_new), 1e-10)
         shift = float(np.sqrt(np.mean(np.sum((new_y_hat - y_hat) ** 2, 1))))
         y_hat, sigma2 = new_y_hat, sigma2_new
@@ -447,8 +450,9 @@ def nonrigid_register(
         raise ValueError("target points are all identical")
     y = (src[voxel_downsample(src, downsample_radius)] - centre) / unit
     x = (tgt[voxel_downsample(tgt, downsample_radius)] - centre) / unit
-    layer, iterations, sigma = _bcpd(y, x, beta, lam, w, gamma, K, max_iter, tol, kd_sigma, kd_scale,
-                                     kd_radius, similarity, seed)
+    layer, iterations, sigma = _bcpd(
+        y, x, beta, lam, w, gamma, K, max_iter, tol, kd_sigma, kd_scale, kd_radius, similarity, seed
+    )
     deformed = layer.apply((src - centre) / unit) * unit + centre
     dist = _distance(deformed, tgt, target_faces)
     log.info("BCPD: %d iterations, sigma %.4g mm, mean distance %.4g mm", iterations, sigma * unit, dist)
@@ -502,23 +506,40 @@ def multilayer_register(
     beta0 = beta
     for i in range(max_layers):
         k = int(min(max_K, round(k0 * (beta0 / beta) ** 2)))
-        result = nonrigid_register(current, target, target_faces, lam=lam, beta=beta, K=k,
-                                   downsample_radius=radius, **kwargs)
+        result = nonrigid_register(
+            current, target, target_faces, lam=lam, beta=beta, K=k, downsample_radius=radius, **kwargs
+        )
         # Layers are composed in one shared normalisation: the target's, identical every layer.
         layers.extend(result.layers)
         total_iter += result.iterations
-        history.append(dict(layer=i, beta=beta, lam=lam, K=k, downsample_radius=radius,
-                            iterations=result.iterations, mean_distance=result.mean_distance))
-        log.info("layer %d: beta %.3g lam %.3g K %d -> mean distance %.4g mm", i, beta, lam, k,
-                 result.mean_distance)
+        history.append(
+            dict(
+                layer=i,
+                beta=beta,
+                lam=lam,
+                K=k,
+                downsample_radius=radius,
+                iterations=result.iterations,
+                mean_distance=result.mean_distance,
+            )
+        )
+        log.info("layer %d: beta %.3g lam %.3g K %d -> mean distance %.4g mm", i, beta, lam, k, result.mean_distance)
         current = result.deformed
         if result.mean_distance < bound:
             break
         beta = max(beta * refine, min_beta)
         lam = lam * lam_refine
         radius = radius * radius_refine
-    return NonrigidResult(current, total_iter, result.mean_distance, result.sigma, result.centre,
-                          result.unit, tuple(layers), tuple(history))
+    return NonrigidResult(
+        current,
+        total_iter,
+        result.mean_distance,
+        result.sigma,
+        result.centre,
+        result.unit,
+        tuple(layers),
+        tuple(history),
+    )
 
 
 # ----------------------------------------------------------------------------------------------- distance

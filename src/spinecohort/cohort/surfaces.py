@@ -170,8 +170,12 @@ def segment_superellipsoid(
     ex = np.cross(ey, ez)
     rot = np.stack([ex, ey, ez], axis=1)
     return superellipsoid(
-        0.5 * (p0 + p1), rot, (half_thickness, half_width, 0.5 * length + half_thickness),
-        n_theta, n_rings, exponent,
+        0.5 * (p0 + p1),
+        rot,
+        (half_thickness, half_width, 0.5 * length + half_thickness),
+        n_theta,
+        n_rings,
+        exponent,
     )
 
 

@@ -60,15 +60,15 @@ FAULT_KILL_ENV = "SPINECOHORT_FAULT_KILL_SHARD"
 _F32_HALF_ULP_REL = 2.0**-24
 
 
-
-
 def _quiet_numcodecs(func):
     """Silence zarr's 'numcodecs codecs are not in the v3 spec' warning, raised on every metadata parse."""
+
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Numcodecs codecs are not in the Zarr", category=UserWarning)
             return func(*args, **kwargs)
+
     return wrapper
 
 
@@ -139,8 +139,9 @@ def n_shards(total_models: int, shard_models: int = DEFAULT_SHARD_MODELS) -> int
     return -(-int(total_models) // int(shard_models))
 
 
-def shard_range(shard: int, shard_models: int = DEFAULT_SHARD_MODELS,
-                total_models: int | None = None) -> tuple[int, int]:
+def shard_range(
+    shard: int, shard_models: int = DEFAULT_SHARD_MODELS, total_models: int | None = None
+) -> tuple[int, int]:
     """Half-open model-ID range [start, stop) of ``shard``; clipped to total_models when given."""
     if shard_models < 1:
         raise ValueError(f"shard_models must be >= 1, got {shard_models}")
@@ -168,8 +169,7 @@ def _codecs(encoding: str, quantum_mm: float) -> dict:
     if encoding == "int32":
         return dict(filters=[fso], compressors=packed, order="C")
     if encoding == "int32-delta":
-        return dict(filters=[TransposeCodec(order=(0, 2, 1)), fso, Delta(dtype="<i4")],
-                    compressors=packed, order="F")
+        return dict(filters=[TransposeCodec(order=(0, 2, 1)), fso, Delta(dtype="<i4")], compressors=packed, order="F")
     raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
 
 
@@ -188,10 +188,19 @@ def error_bound_mm(encoding: str, quantum_mm: float = DEFAULT_QUANTUM_MM, max_ab
 
 # ------------------------------------------------------------------------------------------- create
 @_quiet_numcodecs
-def create_store(path: str | Path, n_tri_nodes: int, n_hex_nodes: int, n_modes: int = DEFAULT_N_MODES,
-                 levels=DEFAULT_LEVELS, shard_models: int = DEFAULT_SHARD_MODELS, attrs: dict | None = None,
-                 encoding: str = "int32-delta", quantum_mm: float = DEFAULT_QUANTUM_MM,
-                 max_abs_mm: float = 512.0, overwrite: bool = False) -> zarr.Group:
+def create_store(
+    path: str | Path,
+    n_tri_nodes: int,
+    n_hex_nodes: int,
+    n_modes: int = DEFAULT_N_MODES,
+    levels=DEFAULT_LEVELS,
+    shard_models: int = DEFAULT_SHARD_MODELS,
+    attrs: dict | None = None,
+    encoding: str = "int32-delta",
+    quantum_mm: float = DEFAULT_QUANTUM_MM,
+    max_abs_mm: float = 512.0,
+    overwrite: bool = False,
+) -> zarr.Group:
     """Create the empty cohort store (Zarr v3) with ``weights``, ``tri/points`` and ``hex/points``.
 
     attrs: extra JSON attributes (e.g. ``ssm_sha256``, ``template_sha256`` from :func:`file_sha256`).
@@ -210,33 +219,50 @@ def create_store(path: str | Path, n_tri_nodes: int, n_hex_nodes: int, n_modes: 
     if Path(path).exists() and not overwrite:
         raise ValueError(f"{path} already exists; pass overwrite=True to replace it")
     root = zarr.open_group(str(path), mode="w" if overwrite else "w-", zarr_format=3)
-    root.attrs.update({
-        **(attrs or {}),
-        "format": STORE_FORMAT,
-        "units": "mm",
-        "weights_units": "SD",
-        "n_modes": int(n_modes),
-        "levels": [float(v) for v in lv],
-        "n_models": int(total),
-        "model_id": "sum_i index(w_i in levels) * len(levels)^(n_modes - i), mode 1 most significant",
-        "shard_models": int(shard_models),
-        "n_shards": int(n_sh),
-        "encoding": encoding,
-        "quantum_mm": float(quantum_mm) if encoding != "float32" else None,
-        "max_abs_mm": float(max_abs_mm),
-        "error_bound_mm": error_bound_mm(encoding, quantum_mm, max_abs_mm),
-    })
-    root.create_array("weights", shape=(total, n_modes), chunks=(shard_models, n_modes), dtype="f8",
-                      compressors=[ZstdCodec(level=3)], fill_value=np.nan,
-                      dimension_names=("model", "mode"))
+    root.attrs.update(
+        {
+            **(attrs or {}),
+            "format": STORE_FORMAT,
+            "units": "mm",
+            "weights_units": "SD",
+            "n_modes": int(n_modes),
+            "levels": [float(v) for v in lv],
+            "n_models": int(total),
+            "model_id": "sum_i index(w_i in levels) * len(levels)^(n_modes - i), mode 1 most significant",
+            "shard_models": int(shard_models),
+            "n_shards": int(n_sh),
+            "encoding": encoding,
+            "quantum_mm": float(quantum_mm) if encoding != "float32" else None,
+            "max_abs_mm": float(max_abs_mm),
+            "error_bound_mm": error_bound_mm(encoding, quantum_mm, max_abs_mm),
+        }
+    )
+    root.create_array(
+        "weights",
+        shape=(total, n_modes),
+        chunks=(shard_models, n_modes),
+        dtype="f8",
+        compressors=[ZstdCodec(level=3)],
+        fill_value=np.nan,
+        dimension_names=("model", "mode"),
+    )
     for name, n in (("tri/points", n_tri_nodes), ("hex/points", n_hex_nodes)):
-        a = root.create_array(name, shape=(total, int(n), 3), chunks=(1, int(n), 3),
-                              shards=(shard_models, int(n), 3), dtype="f4", filters=enc["filters"],
-                              compressors=enc["compressors"], fill_value=0.0,
-                              dimension_names=("model", "node", "xyz"))
+        a = root.create_array(
+            name,
+            shape=(total, int(n), 3),
+            chunks=(1, int(n), 3),
+            shards=(shard_models, int(n), 3),
+            dtype="f4",
+            filters=enc["filters"],
+            compressors=enc["compressors"],
+            fill_value=0.0,
+            dimension_names=("model", "node", "xyz"),
+        )
         a.attrs.update({"units": "mm"})
-    root.create_group(_CHECKSUM_DIR, attributes={"about": "one subgroup per finished shard; attributes "
-                                                          "hold sha256 and size of its stored objects"})
+    root.create_group(
+        _CHECKSUM_DIR,
+        attributes={"about": "one subgroup per finished shard; attributes hold sha256 and size of its stored objects"},
+    )
     return root
 
 
@@ -252,9 +278,11 @@ def file_sha256(path: str | Path) -> str:
 # -------------------------------------------------------------------------------------------- write
 def _shard_objects(path: Path, shard: int) -> list[Path]:
     """Files holding shard ``shard``: the two point shards and the weights chunk (default key encoding)."""
-    return [path / "tri/points/c" / str(shard) / "0" / "0",
-            path / "hex/points/c" / str(shard) / "0" / "0",
-            path / "weights/c" / str(shard) / "0"]
+    return [
+        path / "tri/points/c" / str(shard) / "0" / "0",
+        path / "hex/points/c" / str(shard) / "0" / "0",
+        path / "weights/c" / str(shard) / "0",
+    ]
 
 
 def _sidecar(shard: int) -> str:
@@ -273,8 +301,9 @@ def _open_meta(path: str | Path) -> tuple[zarr.Group, dict]:
 
 
 @_quiet_numcodecs
-def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points: np.ndarray,
-                verify: bool = True) -> dict:
+def write_shard(
+    path: str | Path, shard: int, tri_points: np.ndarray, hex_points: np.ndarray, verify: bool = True
+) -> dict:
     """Write shard ``shard`` (its exact shard-aligned region of both point arrays and ``weights``).
 
     tri_points (S, n_tri_nodes, 3), hex_points (S, n_hex_nodes, 3) in mm, S = models in the shard.
@@ -294,8 +323,10 @@ def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points
         if not (np.isfinite(lo) and np.isfinite(hi)):
             raise ValueError(f"{name} of shard {shard} has non-finite coordinates")
         if max(-lo, hi) > meta["max_abs_mm"]:
-            raise ValueError(f"{name} of shard {shard} exceeds the store's max_abs_mm={meta['max_abs_mm']} "
-                             f"(coordinates span [{lo:.1f}, {hi:.1f}] mm)")
+            raise ValueError(
+                f"{name} of shard {shard} exceeds the store's max_abs_mm={meta['max_abs_mm']} "
+                f"(coordinates span [{lo:.1f}, {hi:.1f}] mm)"
+            )
     side = p / _sidecar(shard)
     if side.exists():  # a rewrite is incomplete until its new sidecar lands
         for f in side.iterdir():
@@ -325,12 +356,17 @@ def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points
             diff = np.subtract(root[name][start:stop], x, dtype=np.float32)
             max_err[name] = float(max(diff.max(), -diff.min()))
             if max_err[name] > meta["error_bound_mm"]:
-                raise RuntimeError(f"{name} shard {shard} decodes with error {max_err[name]:.3g} mm > bound "
-                                   f"{meta['error_bound_mm']:.3g} mm: the codec chain misbehaves")
+                raise RuntimeError(
+                    f"{name} shard {shard} decodes with error {max_err[name]:.3g} mm > bound "
+                    f"{meta['error_bound_mm']:.3g} mm: the codec chain misbehaves"
+                )
     record = {
-        "shard": int(shard), "models": [start, stop],
-        "objects": {str(o.relative_to(p)): {"sha256": file_sha256(o), "bytes": o.stat().st_size}
-                    for o in _shard_objects(p, shard)},
+        "shard": int(shard),
+        "models": [start, stop],
+        "objects": {
+            str(o.relative_to(p)): {"sha256": file_sha256(o), "bytes": o.stat().st_size}
+            for o in _shard_objects(p, shard)
+        },
         "max_error_mm": max_err,
     }
     # zarr's LocalStore writes zarr.json through a temporary file and a rename: atomic on POSIX

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .pca import SSM
+from spinecohort.ssm.model import SSM
 
 
 def generalization_errors(aligned: np.ndarray, max_modes: int | None = None) -> np.ndarray:
@@ -47,12 +47,18 @@ def generalization(aligned: np.ndarray, max_modes: int | None = None) -> pd.Data
     """
     errs = generalization_errors(aligned, max_modes)
     m_max = errs.shape[1]
-    return pd.DataFrame({"modes": np.arange(1, m_max + 1), "generalization_mm": errs.mean(0),
-                         "generalization_sd_mm": errs.std(0, ddof=1)})
+    return pd.DataFrame(
+        {
+            "modes": np.arange(1, m_max + 1),
+            "generalization_mm": errs.mean(0),
+            "generalization_sd_mm": errs.std(0, ddof=1),
+        }
+    )
 
 
-def specificity(ssm: SSM, aligned: np.ndarray, n_samples: int = 1000, max_modes: int | None = None,
-                seed: int = 0) -> pd.DataFrame:
+def specificity(
+    ssm: SSM, aligned: np.ndarray, n_samples: int = 1000, max_modes: int | None = None, seed: int = 0
+) -> pd.DataFrame:
     """Distance of random model instances (w ~ N(0, I)) to their nearest training shape, per m modes.
 
     Training shapes lie in the span of the modes, so |s - x_j|^2 = |c - a_j[:m]|^2 + |a_j[m:]|^2 with
@@ -74,10 +80,12 @@ def specificity(ssm: SSM, aligned: np.ndarray, n_samples: int = 1000, max_modes:
 
 
 def compactness_table(ssm: SSM) -> pd.DataFrame:
-    return pd.DataFrame({
-        "modes": np.arange(1, ssm.n_modes + 1),
-        "eigenvalue_mm2": ssm.eigenvalues,
-        "sd_mm": np.sqrt(ssm.eigenvalues),
-        "explained_variance": ssm.explained_variance_ratio,
-        "cumulative_variance": ssm.cumulative_variance,
-    })
+    return pd.DataFrame(
+        {
+            "modes": np.arange(1, ssm.n_modes + 1),
+            "eigenvalue_mm2": ssm.eigenvalues,
+            "sd_mm": np.sqrt(ssm.eigenvalues),
+            "explained_variance": ssm.explained_variance_ratio,
+            "cumulative_variance": ssm.cumulative_variance,
+        }
+    )

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .landmarks import Landmarks
-from .stl_io import MeshInputError, read_stl, write_stl
+from spinecohort.cohort.landmarks import Landmarks
+from spinecohort.cohort.stl_io import MeshInputError, read_stl, write_stl
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +54,14 @@ def commit(tmp: Path, path: str | Path) -> None:
     os.replace(tmp, path)
 
 
-def write_cohort_folder(out_dir: str | Path, ids: list[str], points: np.ndarray, faces: np.ndarray,
-                        landmarks: Landmarks, table: pd.DataFrame) -> list[Path]:
+def write_cohort_folder(
+    out_dir: str | Path,
+    ids: list[str],
+    points: np.ndarray,
+    faces: np.ndarray,
+    landmarks: Landmarks,
+    table: pd.DataFrame,
+) -> list[Path]:
     """Write ``<ID>.stl`` per patient, ``patients.csv`` and ``landmarks.json``; returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -74,8 +80,14 @@ def triangle_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
-def check_mesh(path: Path, points: np.ndarray, faces: np.ndarray, units: str,
-               degenerate_area_mm2: float, max_degenerate_fraction: float) -> np.ndarray:
+def check_mesh(
+    path: Path,
+    points: np.ndarray,
+    faces: np.ndarray,
+    units: str,
+    degenerate_area_mm2: float,
+    max_degenerate_fraction: float,
+) -> np.ndarray:
     """Validate one patient mesh; returns its points converted to mm."""
     if not np.all(np.isfinite(points)):
         bad = int((~np.isfinite(points)).any(axis=1).sum())
@@ -122,9 +134,14 @@ def read_patient_sheet(path: str | Path) -> pd.DataFrame:
     return table
 
 
-def load_cohort(stl_paths: list[str | Path], sheet_path: str | Path, landmarks_path: str | Path,
-                units: str = "mm", degenerate_area_mm2: float = 1e-6,
-                max_degenerate_fraction: float = 0.001) -> Cohort:
+def load_cohort(
+    stl_paths: list[str | Path],
+    sheet_path: str | Path,
+    landmarks_path: str | Path,
+    units: str = "mm",
+    degenerate_area_mm2: float = 1e-6,
+    max_degenerate_fraction: float = 0.001,
+) -> Cohort:
     """Read and validate a cohort; patients are ordered as ``stl_paths``, IDs are the file stems."""
     if units not in UNIT_TO_MM:
         raise CohortInputError(f"cohort.units must be one of {sorted(UNIT_TO_MM)}, got '{units}'")

@@ -64,9 +64,7 @@ class Landmarks:
     def validate(self, n_vertices: int, source: str = "landmarks") -> None:
         """Raise ValueError naming ``source`` if any set is empty or indexes outside ``n_vertices``."""
         if self.n_vertices != n_vertices:
-            raise ValueError(
-                f"{source}: part labels cover {self.n_vertices} vertices but the meshes have {n_vertices}"
-            )
+            raise ValueError(f"{source}: part labels cover {self.n_vertices} vertices but the meshes have {n_vertices}")
         for name, sets in self._sets().items():
             for key, idx in sets.items():
                 if idx.size == 0:
@@ -110,7 +108,7 @@ class Landmarks:
         return out
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Landmarks":
+    def from_dict(cls, d: dict) -> Landmarks:
         def idx(v) -> np.ndarray:
             return np.asarray(v, dtype=np.int64)
 
@@ -135,7 +133,7 @@ class Landmarks:
         Path(path).write_text(json.dumps(self.to_dict()))
 
     @classmethod
-    def load(cls, path: str | Path) -> "Landmarks":
+    def load(cls, path: str | Path) -> Landmarks:
         try:
             d = json.loads(Path(path).read_text())
             return cls.from_dict(d)

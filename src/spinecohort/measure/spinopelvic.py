@@ -26,14 +26,33 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from . import gap as _gap
-from .landmarks import DISCS, LEVELS, Landmarks, disc_name
+from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
+from spinecohort.measure import gap_score as _gap
 
 C7_PROXIES = ("extrapolated", "T1")
 
 _ANGLE_COLS = [
-    "PI", "PT", "SS", "LL", "LL_L4S1", "LL_L1L5", "PI_minus_LL", "LL_minus_PI", "GT", "GT_T1", "T1SPI", "TPA",
-    "TK_T1T12", "TK_T4T12", "TK_T5T12", "Cobb", "Cobb2", "RPV", "RLL", "RSA", "PI_identity_err",
+    "PI",
+    "PT",
+    "SS",
+    "LL",
+    "LL_L4S1",
+    "LL_L1L5",
+    "PI_minus_LL",
+    "LL_minus_PI",
+    "GT",
+    "GT_T1",
+    "T1SPI",
+    "TPA",
+    "TK_T1T12",
+    "TK_T4T12",
+    "TK_T5T12",
+    "Cobb",
+    "Cobb2",
+    "RPV",
+    "RLL",
+    "RSA",
+    "PI_identity_err",
 ]
 _DISC_COLS = [f"{p}_{disc_name(u, l)}" for u, l in DISCS for p in ("DH", "DHa", "DHp")]
 
@@ -41,11 +60,17 @@ _DISC_COLS = [f"{p}_{disc_name(u, l)}" for u, l in DISCS for p in ("DH", "DHa", 
 UNITS: dict[str, str] = {
     **{c: "deg" for c in _ANGLE_COLS},
     "LDI": "%",
-    "SVA_T1": "mm", "SVA_C7est": "mm", "FH_radius_L": "mm", "FH_radius_R": "mm", "HA_width": "mm",
+    "SVA_T1": "mm",
+    "SVA_C7est": "mm",
+    "FH_radius_L": "mm",
+    "FH_radius_R": "mm",
+    "HA_width": "mm",
     "endplate_rms_max": "mm",
     **{c: "mm" for c in _DISC_COLS},
-    **{c: "points" for c in ("RPV_pts", "RLL_pts", "LDI_pts", "RSA_pts", "Age_pts", "GAP_noage", "GAP",
-                             "GAP_assumed_age")},
+    **{
+        c: "points"
+        for c in ("RPV_pts", "RLL_pts", "LDI_pts", "RSA_pts", "Age_pts", "GAP_noage", "GAP", "GAP_assumed_age")
+    },
 }
 
 
@@ -55,6 +80,7 @@ def parameter_table_header(df: pd.DataFrame) -> pd.DataFrame:
 
 
 # --------------------------------------------------------------------------------------------- fits
+
 
 def fit_planes(patch: np.ndarray, vertical: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Total-least-squares planes of a batch of patches.
@@ -100,8 +126,9 @@ def fit_spheres(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mu + c, np.sqrt(s.mean(axis=1) + np.einsum("bi,bi->b", c, c))
 
 
-def patient_frame(c_left: np.ndarray, c_right: np.ndarray, vertical: np.ndarray,
-                  symphysis: np.ndarray, s1_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def patient_frame(
+    c_left: np.ndarray, c_right: np.ndarray, vertical: np.ndarray, symphysis: np.ndarray, s1_centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Medio-lateral Lh (left->right) and anterior A unit vectors (B, 3) from the femoral-head centres.
 
     Lh = horizontal part of c_right - c_left, A = V x Lh.  Both are flipped where the symphysis centre lies
@@ -130,6 +157,7 @@ def cor_deg(v: np.ndarray, lateral: np.ndarray, vertical: np.ndarray) -> np.ndar
 
 
 # --------------------------------------------------------------------------------- per-parameter formulas
+
 
 def sacral_slope_deg(n_s1, anterior, vertical):
     """SS = sag(n_S1sup): S1 plate vs horizontal, positive when it slopes down anteriorly (§2.1)."""
@@ -181,8 +209,7 @@ def sva_mm(plumb_centre, s1_posterosuperior, anterior):
     return np.einsum("...i,...i->...", plumb_centre - s1_posterosuperior, anterior)
 
 
-def disc_heights_mm(c_upper_inf, n_upper_inf, c_lower_sup, n_lower_sup, ant_upper, ant_lower,
-                    post_upper, post_lower):
+def disc_heights_mm(c_upper_inf, n_upper_inf, c_lower_sup, n_lower_sup, ant_upper, ant_lower, post_upper, post_lower):
     """Central, anterior and posterior disc heights (mm) along the mean endplate normal (§5).
 
     c_*: endplate centres; n_*: cranial unit normals; ant_/post_*: the rim points extreme in +A / -A of the
@@ -233,12 +260,20 @@ def cobb_angle(phi_sup_deg: np.ndarray, phi_inf_deg: np.ndarray, secondary_min_d
     cobb2 = sec[rows, k2]
     up2, lo2 = np.unravel_index(k2, (n, n))
     keep = cobb2 >= secondary_min_deg
-    return {"cobb": cobb, "upper": up, "lower": lo, "apex": apex, "convexity": convexity,
-            "cobb2": np.where(keep, cobb2, np.nan), "upper2": np.where(keep, up2, -1),
-            "lower2": np.where(keep, lo2, -1)}
+    return {
+        "cobb": cobb,
+        "upper": up,
+        "lower": lo,
+        "apex": apex,
+        "convexity": convexity,
+        "cobb2": np.where(keep, cobb2, np.nan),
+        "upper2": np.where(keep, up2, -1),
+        "lower2": np.where(keep, lo2, -1),
+    }
 
 
 # ------------------------------------------------------------------------------------------ measure
+
 
 class _Block:
     """All landmark vertices of the batch gathered once (one fancy-index pass), addressed by set name.
@@ -272,9 +307,17 @@ class _Block:
         return np.take_along_axis(p, k[:, None, None], axis=1)[:, 0]
 
 
-def measure(points, landmarks: Landmarks, vertical=(0.0, 0.0, 1.0), age=None, assumed_age: float = 65.0,
-            c7_proxy: str = "extrapolated", ldi_min_ll_deg: float = _gap.LDI_MIN_LL_DEG,
-            ldi_undefined_points: float = 0.0, cobb_secondary_min_deg: float = 10.0) -> pd.DataFrame:
+def measure(
+    points,
+    landmarks: Landmarks,
+    vertical=(0.0, 0.0, 1.0),
+    age=None,
+    assumed_age: float = 65.0,
+    c7_proxy: str = "extrapolated",
+    ldi_min_ll_deg: float = _gap.LDI_MIN_LL_DEG,
+    ldi_undefined_points: float = 0.0,
+    cobb_secondary_min_deg: float = 10.0,
+) -> pd.DataFrame:
     """Measure every spinopelvic parameter of a batch of models in correspondence.
 
     points: (B, N, 3) or (N, 3) vertex coordinates in mm (RAS); the landmark index sets name the vertices.
@@ -356,35 +399,54 @@ def measure(points, landmarks: Landmarks, vertical=(0.0, 0.0, 1.0), age=None, as
     s1ps = blk.extreme("S1 sup rim", ant, largest=False)
 
     out: dict[str, np.ndarray | list] = {
-        "PI": pi, "PT": pt, "SS": ss, "LL": ll, "LL_L4S1": ll_l4s1, "LL_L1L5": ll_l1l5,
-        "PI_minus_LL": pi - ll, "LL_minus_PI": ll - pi,
-        "GT": global_tilt_deg(pt, c7, s1_c, ant, v), "GT_proxy": [c7_proxy] * b,
+        "PI": pi,
+        "PT": pt,
+        "SS": ss,
+        "LL": ll,
+        "LL_L4S1": ll_l4s1,
+        "LL_L1L5": ll_l1l5,
+        "PI_minus_LL": pi - ll,
+        "LL_minus_PI": ll - pi,
+        "GT": global_tilt_deg(pt, c7, s1_c, ant, v),
+        "GT_proxy": [c7_proxy] * b,
         "GT_T1": global_tilt_deg(pt, t1c, s1_c, ant, v),
-        "T1SPI": t1spi, "TPA": t1_pelvic_angle_deg(pt, t1spi),
+        "T1SPI": t1spi,
+        "TPA": t1_pelvic_angle_deg(pt, t1spi),
         "TK_T1T12": kyphosis_deg(th_sup[:, li["T1"]], th_inf[:, li["T12"]]),
         "TK_T4T12": kyphosis_deg(th_sup[:, li["T4"]], th_inf[:, li["T12"]]),
         "TK_T5T12": kyphosis_deg(th_sup[:, li["T5"]], th_inf[:, li["T12"]]),
     }
     cobb = cobb_angle(cor_deg(n_sup, lh[:, None], v), cor_deg(n_inf, lh[:, None], v), cobb_secondary_min_deg)
     names = np.array(LEVELS, dtype=object)
-    out.update({
-        "Cobb": cobb["cobb"], "Cobb_convexity": cobb["convexity"].astype(int),
-        "Cobb_upper": names[cobb["upper"]], "Cobb_lower": names[cobb["lower"]], "Cobb_apex": names[cobb["apex"]],
-        "Cobb2": cobb["cobb2"],
-        "Cobb2_upper": np.where(cobb["upper2"] >= 0, names[cobb["upper2"]], ""),
-        "Cobb2_lower": np.where(cobb["lower2"] >= 0, names[cobb["lower2"]], ""),
-        "SVA_T1": sva_mm(t1c, s1ps, ant), "SVA_C7est": sva_mm(c7_ext, s1ps, ant),
-    })
-    for k, (upper, lower) in enumerate(DISCS):
+    out.update(
+        {
+            "Cobb": cobb["cobb"],
+            "Cobb_convexity": cobb["convexity"].astype(int),
+            "Cobb_upper": names[cobb["upper"]],
+            "Cobb_lower": names[cobb["lower"]],
+            "Cobb_apex": names[cobb["apex"]],
+            "Cobb2": cobb["cobb2"],
+            "Cobb2_upper": np.where(cobb["upper2"] >= 0, names[cobb["upper2"]], ""),
+            "Cobb2_lower": np.where(cobb["lower2"] >= 0, names[cobb["lower2"]], ""),
+            "SVA_T1": sva_mm(t1c, s1ps, ant),
+            "SVA_C7est": sva_mm(c7_ext, s1ps, ant),
+        }
+    )
+    for _k, (upper, lower) in enumerate(DISCS):
         iu = li[upper]
         cl = s1_c if lower == "S1" else c_sup[:, li[lower]]
         nl_ = s1_n if lower == "S1" else n_sup[:, li[lower]]
         ru, rl = f"{upper} inf rim", f"{lower} sup rim"
         name = disc_name(upper, lower)
         dh, dha, dhp = disc_heights_mm(
-            c_inf[:, iu], n_inf[:, iu], cl, nl_,
-            blk.extreme(ru, ant, True), blk.extreme(rl, ant, True),
-            blk.extreme(ru, ant, False), blk.extreme(rl, ant, False),
+            c_inf[:, iu],
+            n_inf[:, iu],
+            cl,
+            nl_,
+            blk.extreme(ru, ant, True),
+            blk.extreme(rl, ant, True),
+            blk.extreme(ru, ant, False),
+            blk.extreme(rl, ant, False),
         )
         out[f"DH_{name}"], out[f"DHa_{name}"], out[f"DHp_{name}"] = dh, dha, dhp
     # anatomical sides: with swapped labels the fit called "L" is the right head
@@ -395,19 +457,30 @@ def measure(points, landmarks: Landmarks, vertical=(0.0, 0.0, 1.0), age=None, as
     g = _gap.gap_score(pi, ss, ll, ll_l4s1, out["GT"], age_arr, ldi_undefined_points, ldi_min_ll_deg)
     assumed = g["GAP_noage"] + _gap.age_points(assumed_age)
     known = ~np.isnan(age_arr)
-    out.update({
-        "RPV": g["RPV"], "RLL": g["RLL"], "RSA": g["RSA"], "LDI": g["LDI"], "LDI_undefined": np.isnan(g["LDI"]),
-        "RPV_pts": g["RPV_pts"], "RLL_pts": g["RLL_pts"], "LDI_pts": g["LDI_pts"], "RSA_pts": g["RSA_pts"],
-        "Age_pts": np.where(known, g["Age_pts"], _gap.age_points(assumed_age)),
-        "GAP_noage": g["GAP_noage"], "GAP": g["GAP"], "GAP_assumed_age": assumed,
-        "GAP_category": _gap.gap_category(np.where(known, g["GAP"], assumed)),
-        "PI_identity_err": pi_err, "endplate_rms_max": rms_max,
-    })
+    out.update(
+        {
+            "RPV": g["RPV"],
+            "RLL": g["RLL"],
+            "RSA": g["RSA"],
+            "LDI": g["LDI"],
+            "LDI_undefined": np.isnan(g["LDI"]),
+            "RPV_pts": g["RPV_pts"],
+            "RLL_pts": g["RLL_pts"],
+            "LDI_pts": g["LDI_pts"],
+            "RSA_pts": g["RSA_pts"],
+            "Age_pts": np.where(known, g["Age_pts"], _gap.age_points(assumed_age)),
+            "GAP_noage": g["GAP_noage"],
+            "GAP": g["GAP"],
+            "GAP_assumed_age": assumed,
+            "GAP_category": _gap.gap_category(np.where(known, g["GAP"], assumed)),
+            "PI_identity_err": pi_err,
+            "endplate_rms_max": rms_max,
+        }
+    )
     return pd.DataFrame(out)
 
 
-def measure_batch(points, landmarks: Landmarks | str | Path, vertical_axis=(0.0, 0.0, 1.0),
-                  **kwargs) -> pd.DataFrame:
+def measure_batch(points, landmarks: Landmarks | str | Path, vertical_axis=(0.0, 0.0, 1.0), **kwargs) -> pd.DataFrame:
     """Workflow adapter: :func:`measure` with ``landmarks`` given as a :class:`Landmarks` or a JSON path."""
     if not isinstance(landmarks, Landmarks):
         landmarks = Landmarks.load(landmarks)

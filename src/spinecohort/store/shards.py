@@ -22,15 +22,20 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from .contact import distraction_summary, resolve_contact
-from .hex_ssm import HexSSM
-from .hex_template import HexTemplate
-from .landmarks import DISCS, LEVELS, Landmarks
-from .measure import measure
-from .pca import SSM
-from .quality import morph_scaled_jacobian_nb, scaled_jacobian, scaled_jacobian_batch_nb, table3_per_model
-from .repair import RepairError, prepare_untangle, untangle
-from .store import model_name
+from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
+from spinecohort.measure.spinopelvic import measure
+from spinecohort.mesh.contact import distraction_summary, resolve_contact
+from spinecohort.mesh.hex_ssm import HexSSM
+from spinecohort.mesh.quality import (
+    morph_scaled_jacobian_nb,
+    scaled_jacobian,
+    scaled_jacobian_batch_nb,
+    table3_per_model,
+)
+from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.ssm.model import SSM
+from spinecohort.store.zarr_store import model_name
 
 #: models sampled per float64 batch: 49 x 81k nodes x 3 x 8 B = 95 MB per array
 DEFAULT_CHUNK = 49
@@ -47,10 +52,11 @@ def _check_weights(weights: np.ndarray, n_available: int, what: str) -> np.ndarr
     return w
 
 
-def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray, chunk: int = DEFAULT_CHUNK,
-                  return_contact: bool = False):
+def sample_points(
+    ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray, chunk: int = DEFAULT_CHUNK, return_contact: bool = False
+):
     """(tri (S, N, 3), hex (S, n_nodes, 3)) float32 mm of ``SSM.sample`` / ``HexSSM.sample`` for weights (S, m),
-    with the disc-contact distraction of ``hex_ssm.contact`` applied (``spinecohort.contact``).
+    with the disc-contact distraction of ``hex_ssm.contact`` applied (``spinecohort.mesh.contact``).
 
     Computed in float64 batches of ``chunk`` models (one BLAS product each) and cast to float32, the
     store's dtype, so the float64 intermediate never holds the whole shard.  ``return_contact``: also
@@ -67,13 +73,13 @@ def sample_points(ssm: SSM, hex_ssm: HexSSM, weights: np.ndarray, chunk: int = D
     gaps = np.full((len(w), len(DISCS)), np.inf)
     offsets = np.zeros((len(w), len(DISCS), 3))
     for i in range(0, len(w), chunk):
-        wb = w[i:i + chunk]
+        wb = w[i : i + chunk]
         t64 = (ssm.mean.ravel() + wb @ df_tri).reshape(len(wb), *ssm.mean.shape)
         h64 = (hex_ssm.mean.ravel() + wb @ df_hex).reshape(len(wb), *hex_ssm.mean.shape)
         if hex_ssm.contact is not None:
-            gaps[i:i + chunk], offsets[i:i + chunk] = resolve_contact(t64, h64, hex_ssm.contact)
-        tri[i:i + chunk] = t64
-        hexp[i:i + chunk] = h64
+            gaps[i : i + chunk], offsets[i : i + chunk] = resolve_contact(t64, h64, hex_ssm.contact)
+        tri[i : i + chunk] = t64
+        hexp[i : i + chunk] = h64
     return (tri, hexp, gaps, offsets) if return_contact else (tri, hexp)
 
 
@@ -82,9 +88,16 @@ def _min_by_part(sj: np.ndarray, part: np.ndarray) -> dict[str, np.ndarray]:
     return {t: sj[:, part == t].min(axis=1) for t in np.unique(part)}
 
 
-def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: HexSSM, weights: np.ndarray,
-                     model_ids: np.ndarray, repair: bool = True, log=None,
-                     level_offsets: np.ndarray | None = None) -> pd.DataFrame:
+def check_and_repair(
+    hex_points: np.ndarray,
+    template: HexTemplate,
+    hex_ssm: HexSSM,
+    weights: np.ndarray,
+    model_ids: np.ndarray,
+    repair: bool = True,
+    log=None,
+    level_offsets: np.ndarray | None = None,
+) -> pd.DataFrame:
     """Scaled Jacobian of every hex of every model; untangle the models with inverted hexes **in place**.
 
     hex_points (S, n_nodes, 3) float32 mm (the sampled coordinates of ``weights`` (S, m)): the check runs
@@ -104,8 +117,11 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
     mean = np.ascontiguousarray(hex_ssm.mean[:n])
     fields = np.ascontiguousarray(hex_ssm.fields[: w.shape[1], :n])
     sj = morph_scaled_jacobian_nb(mean, fields, np.ascontiguousarray(w), hexes)  # (S, E)
-    moved = (np.flatnonzero(np.abs(level_offsets).max(axis=(1, 2)) > 0) if level_offsets is not None
-             else np.array([], dtype=np.int64))
+    moved = (
+        np.flatnonzero(np.abs(level_offsets).max(axis=(1, 2)) > 0)
+        if level_offsets is not None
+        else np.array([], dtype=np.int64)
+    )
     shift = {}
     if len(moved):  # distracted models: checked on their own float64 coordinates, one batched kernel call
         offsets = hex_ssm.contact.hex_offsets(level_offsets[moved])[:, :n]
@@ -113,9 +129,17 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
         pts = mean + np.tensordot(w[moved], fields, axes=(1, 0)) + offsets
         sj[moved] = scaled_jacobian_batch_nb(np.ascontiguousarray(pts), hexes)
     invalid = (sj <= 0).sum(axis=1)
-    rows = pd.DataFrame({"model_id": np.asarray(model_ids, dtype=np.int64), "min_sj_before": sj.min(axis=1),
-                         "invalid_before": invalid, "nodes_moved": 0, "max_displacement_mm": 0.0,
-                         "repaired": False, "repair_error": ""})
+    rows = pd.DataFrame(
+        {
+            "model_id": np.asarray(model_ids, dtype=np.int64),
+            "min_sj_before": sj.min(axis=1),
+            "invalid_before": invalid,
+            "nodes_moved": 0,
+            "max_displacement_mm": 0.0,
+            "repaired": False,
+            "repair_error": "",
+        }
+    )
     bad = np.flatnonzero(invalid)
     if len(bad) and repair:
         ctx = prepare_untangle(hexes, mean)  # topology + reference quality, shared by every model
@@ -126,25 +150,45 @@ def check_and_repair(hex_points: np.ndarray, template: HexTemplate, hex_ssm: Hex
             except RepairError as exc:
                 rows.loc[k, "repair_error"] = f"{model_name(int(model_ids[k]))}: {exc}"
                 if log is not None:
-                    log.warning("%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])),
-                                w[k].tolist(), exc)
+                    log.warning(
+                        "%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])), w[k].tolist(), exc
+                    )
                 continue
             hex_points[k, :n] = fixed
             sj[k] = scaled_jacobian(fixed, hexes)
             rows.loc[k, ["nodes_moved", "max_displacement_mm", "repaired"]] = (
-                int(len(rep.moved_nodes)), float(rep.max_displacement_mm), True)
+                int(len(rep.moved_nodes)),
+                float(rep.max_displacement_mm),
+                True,
+            )
     rows["min_sj_after"] = sj.min(axis=1)
     rows["invalid_after"] = (sj <= 0).sum(axis=1)
     for tissue, v in _min_by_part(sj, template.part_of_hex()).items():
         rows[f"min_sj_{tissue}"] = v
-    cols = ["model_id", "min_sj_before", "min_sj_after", "invalid_before", "invalid_after", "nodes_moved",
-            "max_displacement_mm", "repaired", "repair_error"]
+    cols = [
+        "model_id",
+        "min_sj_before",
+        "min_sj_after",
+        "invalid_before",
+        "invalid_after",
+        "nodes_moved",
+        "max_displacement_mm",
+        "repaired",
+        "repair_error",
+    ]
     return rows[cols + [c for c in rows.columns if c not in cols]]
 
 
-def sample_shard(ssm: SSM, hex_ssm: HexSSM, template: HexTemplate, weights: np.ndarray, model_ids: np.ndarray,
-                 chunk: int = DEFAULT_CHUNK, repair: bool = True,
-                 log=None) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, dict]:
+def sample_shard(
+    ssm: SSM,
+    hex_ssm: HexSSM,
+    template: HexTemplate,
+    weights: np.ndarray,
+    model_ids: np.ndarray,
+    chunk: int = DEFAULT_CHUNK,
+    repair: bool = True,
+    log=None,
+) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, dict]:
     """Sample, check and repair one shard -> (tri, hex, quality table, timing dict in s)."""
     t0 = time.perf_counter()
     tri, hexp, gaps, offsets = sample_points(ssm, hex_ssm, weights, chunk, return_contact=True)
@@ -179,8 +223,9 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
         pos = np.clip(pos, 0, len(sv) - 1)
         found = sv[order[pos]] == v
         if not found.all():
-            raise ValueError(f"hex landmarks: {int((~found).sum())} vertices of {name} are not surface nodes "
-                             "of the template")
+            raise ValueError(
+                f"hex landmarks: {int((~found).sum())} vertices of {name} are not surface nodes of the template"
+            )
         return n_hex + order[pos]
 
     outer = np.asarray(template.grid.outer)
@@ -189,8 +234,9 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
     inf = {lv: ns[f"EP_INF_{lv}"] for lv in LEVELS}
     body = {}
     for lv in LEVELS:
-        sets = [template.elsets[k] for k in template.elsets
-                if k.startswith(f"V_{lv}_") and template.elset_kind[k] == "hex"]
+        sets = [
+            template.elsets[k] for k in template.elsets if k.startswith(f"V_{lv}_") and template.elset_kind[k] == "hex"
+        ]
         if not sets:
             raise ValueError(f"hex landmarks: the template has no V_{lv}_* element set")
         body[lv] = np.unique(template.hexes[np.concatenate(sets)])
@@ -200,18 +246,29 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
     for lv, nodes in body.items():
         part[nodes] = names.index(f"body_{lv}") if f"body_{lv}" in names else len(names) - 1
     return Landmarks(
-        part=part, part_names=names,
-        endplate_sup=sup, endplate_inf=inf,
-        rim_sup={lv: v[outer] for lv, v in sup.items()}, rim_inf={lv: v[outer] for lv, v in inf.items()},
+        part=part,
+        part_names=names,
+        endplate_sup=sup,
+        endplate_inf=inf,
+        rim_sup={lv: v[outer] for lv, v in sup.items()},
+        rim_inf={lv: v[outer] for lv, v in inf.items()},
         femoral_head={k: surface_nodes(v, f"femoral_head[{k}]") for k, v in landmarks.femoral_head.items()},
-        body=body, pubic_symphysis=surface_nodes(landmarks.pubic_symphysis, "pubic_symphysis"),
+        body=body,
+        pubic_symphysis=surface_nodes(landmarks.pubic_symphysis, "pubic_symphysis"),
         meta={"source": "hex template node sets", **landmarks.meta},
     )
 
 
 # ------------------------------------------------------------------------------------------ measure
-def measure_shard(tri: np.ndarray, hexp: np.ndarray, weights: np.ndarray, model_ids: np.ndarray,
-                  tri_landmarks: Landmarks, hex_lm: Landmarks, **measure_kw) -> tuple[pd.DataFrame, pd.DataFrame]:
+def measure_shard(
+    tri: np.ndarray,
+    hexp: np.ndarray,
+    weights: np.ndarray,
+    model_ids: np.ndarray,
+    tri_landmarks: Landmarks,
+    hex_lm: Landmarks,
+    **measure_kw,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Parameters of a shard on the triangulated points, and their difference to the hex points.
 
     Returns (params: model_id, w1..wm [SD], every parameter of ``measure`` on the tri points;
@@ -220,20 +277,29 @@ def measure_shard(tri: np.ndarray, hexp: np.ndarray, weights: np.ndarray, model_
     """
     w = np.asarray(weights, dtype=np.float64)
     if len(w) != len(tri) or len(w) != len(hexp) or len(w) != len(model_ids):
-        raise ValueError(f"shard arrays disagree on the model count: weights {len(w)}, tri {len(tri)}, "
-                         f"hex {len(hexp)}, ids {len(model_ids)}")
+        raise ValueError(
+            f"shard arrays disagree on the model count: weights {len(w)}, tri {len(tri)}, "
+            f"hex {len(hexp)}, ids {len(model_ids)}"
+        )
     p_tri = measure(tri, tri_landmarks, **measure_kw)
     p_hex = measure(hexp, hex_lm, **measure_kw)
-    head = pd.DataFrame({"model_id": model_name(np.asarray(model_ids)),
-                         **{f"w{i + 1}": w[:, i] for i in range(w.shape[1])}})
+    head = pd.DataFrame(
+        {"model_id": model_name(np.asarray(model_ids)), **{f"w{i + 1}": w[:, i] for i in range(w.shape[1])}}
+    )
     params = pd.concat([head, p_tri], axis=1)
-    num = [c for c in p_tri.columns if pd.api.types.is_numeric_dtype(p_tri[c])
-           and not pd.api.types.is_bool_dtype(p_tri[c])]
+    num = [
+        c for c in p_tri.columns if pd.api.types.is_numeric_dtype(p_tri[c]) and not pd.api.types.is_bool_dtype(p_tri[c])
+    ]
     d = np.abs(p_tri[num].to_numpy(float) - p_hex[num].to_numpy(float))
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns (GAP without age) stay NaN
-        diff = pd.DataFrame({"parameter": num, "max_abs_diff": np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0),
-                             "mean_abs_diff": np.nanmean(d, axis=0)})
+        diff = pd.DataFrame(
+            {
+                "parameter": num,
+                "max_abs_diff": np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0),
+                "mean_abs_diff": np.nanmean(d, axis=0),
+            }
+        )
     diff.loc[~np.isfinite(diff["max_abs_diff"]), "max_abs_diff"] = np.nan
     return params, diff
 
@@ -242,7 +308,7 @@ def shard_models_of(path, shard: int) -> tuple[np.ndarray, np.ndarray]:
     """(model IDs (S,), weights (S, m) in SD) of ``shard`` from the store's own metadata (not the config)."""
     import zarr
 
-    from .store import shard_range, weights_of
+    from spinecohort.store.zarr_store import shard_range, weights_of
 
     attrs = dict(zarr.open_group(str(path), mode="r").attrs)
     start, stop = shard_range(int(shard), attrs["shard_models"], attrs["n_models"])

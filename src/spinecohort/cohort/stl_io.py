@@ -45,9 +45,13 @@ def read_stl(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not is_ascii:
         _check_binary_size(path, data)
     try:
-        m = stl_mesh.Mesh.from_file(str(path), calculate_normals=False, remove_empty_areas=False,
-                                    remove_duplicate_polygons=RemoveDuplicates.NONE,
-                                    mode=Mode.ASCII if is_ascii else Mode.BINARY)
+        m = stl_mesh.Mesh.from_file(
+            str(path),
+            calculate_normals=False,
+            remove_empty_areas=False,
+            remove_duplicate_polygons=RemoveDuplicates.NONE,
+            mode=Mode.ASCII if is_ascii else Mode.BINARY,
+        )
     except Exception as exc:  # numpy-stl raises several types for malformed input
         raise MeshInputError(f"{path}: not a valid STL ({type(exc).__name__}: {exc})") from exc
     tri = np.asarray(m.vectors)
@@ -75,8 +79,9 @@ def merge_vertices(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def write_stl(path: str | Path, vertices: np.ndarray, faces: np.ndarray, ascii: bool = False,
-              name: str = "spinecohort") -> None:
+def write_stl(
+    path: str | Path, vertices: np.ndarray, faces: np.ndarray, ascii: bool = False, name: str = "spinecohort"
+) -> None:
     """Write a triangle mesh as binary (default) or ASCII STL; coordinates are stored as float32.
 
     The binary header is fixed text (numpy-stl's own writer stamps the time into it), so the same mesh

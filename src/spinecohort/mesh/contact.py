@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .hex_template import HexTemplate, disc_runs
-from .landmarks import DISCS, LEVELS, Landmarks
+from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
+from spinecohort.mesh.template import HexTemplate, disc_runs
 
 
 def endplate_plane(points: np.ndarray, patch: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,8 +90,9 @@ class ContactMap:
         gaps, normals = self.gaps(hex_points)
         return gaps, level_offsets(gaps, normals, self.min_height_mm)
 
-    def level_offsets_of_weights(self, mean: np.ndarray, fields: np.ndarray,
-                                 weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def level_offsets_of_weights(
+        self, mean: np.ndarray, fields: np.ndarray, weights: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``level_offsets`` of the linear models ``mean + fields . w`` (mean (n, 3), fields (m, n, 3) mm,
         weights (B, m) SD), sampling only the endplate nodes (no full model is formed)."""
         nodes = np.unique(np.concatenate(self.upper + self.lower))
@@ -111,29 +112,39 @@ class ContactMap:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Flat arrays for an .npz (``from_arrays`` reads them back)."""
-        out = {"contact_tri_level": self.tri_level.astype(np.int8), "contact_hex": self.hex.astype(np.float32),
-               "contact_min_height_mm": np.array(self.min_height_mm)}
+        out = {
+            "contact_tri_level": self.tri_level.astype(np.int8),
+            "contact_hex": self.hex.astype(np.float32),
+            "contact_min_height_mm": np.array(self.min_height_mm),
+        }
         for j in range(len(self.upper)):
             out[f"contact_upper_{j:02d}"] = self.upper[j]
             out[f"contact_lower_{j:02d}"] = self.lower[j]
         return out
 
     @classmethod
-    def from_arrays(cls, z) -> "ContactMap | None":
+    def from_arrays(cls, z) -> ContactMap | None:
         if "contact_hex" not in z:
             return None
         nd = len(DISCS)
-        return cls(np.asarray(z["contact_tri_level"], dtype=np.int64), np.asarray(z["contact_hex"], dtype=np.float64),
-                   [np.asarray(z[f"contact_upper_{j:02d}"]) for j in range(nd)],
-                   [np.asarray(z[f"contact_lower_{j:02d}"]) for j in range(nd)],
-                   float(z["contact_min_height_mm"]))
+        return cls(
+            np.asarray(z["contact_tri_level"], dtype=np.int64),
+            np.asarray(z["contact_hex"], dtype=np.float64),
+            [np.asarray(z[f"contact_upper_{j:02d}"]) for j in range(nd)],
+            [np.asarray(z[f"contact_lower_{j:02d}"]) for j in range(nd)],
+            float(z["contact_min_height_mm"]),
+        )
 
 
 def _level_of_part(landmarks: Landmarks) -> np.ndarray:
     """(N,) level index of every triangulated vertex (body_X / posterior_X), -1 for the rest."""
     index = {lv: i for i, lv in enumerate(LEVELS)}
-    lut = np.array([index.get(name.split("_", 1)[1], -1) if name.startswith(("body_", "posterior_")) else -1
-                    for name in landmarks.part_names])
+    lut = np.array(
+        [
+            index.get(name.split("_", 1)[1], -1) if name.startswith(("body_", "posterior_")) else -1
+            for name in landmarks.part_names
+        ]
+    )
     return lut[landmarks.part]
 
 
@@ -189,6 +200,8 @@ def distraction_summary(gaps: np.ndarray, off: np.ndarray) -> dict[str, np.ndarr
     step = off - np.concatenate([off[:, 1:], np.zeros((len(off), 1, 3))], axis=1)
     opened = np.linalg.norm(step, axis=2) > 0
     names = np.array([f"{u}-{lo}" for u, lo in DISCS])
-    return {"min_disc_gap_before_mm": gaps.min(axis=1),
-            "discs_opened": np.array([";".join(names[row]) for row in opened], dtype=object),
-            "distraction_mm": np.linalg.norm(off, axis=2).max(axis=1)}
+    return {
+        "min_disc_gap_before_mm": gaps.min(axis=1),
+        "discs_opened": np.array([";".join(names[row]) for row in opened], dtype=object),
+        "distraction_mm": np.linalg.norm(off, axis=2).max(axis=1),
+    }

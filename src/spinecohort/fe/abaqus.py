@@ -27,18 +27,41 @@ from pathlib import Path
 import numpy as np
 
 #: nodes per element of each supported Abaqus/CalculiX element type.
-NODES_PER_ELEMENT = {"C3D8": 8, "C3D8I": 8, "C3D8R": 8, "S3": 3, "S4": 4, "S4R": 4, "SPRINGA": 2, "T3D2": 2,
-                     "GAPUNI": 2}
+NODES_PER_ELEMENT = {
+    "C3D8": 8,
+    "C3D8I": 8,
+    "C3D8R": 8,
+    "S3": 3,
+    "S4": 4,
+    "S4R": 4,
+    "SPRINGA": 2,
+    "T3D2": 2,
+    "GAPUNI": 2,
+}
 #: meshio cell type of each element type (hex node order is the same in VTK and Abaqus).
-MESHIO_CELL_TYPE = {"C3D8": "hexahedron", "C3D8I": "hexahedron", "C3D8R": "hexahedron", "S3": "triangle",
-                    "S4": "quad", "S4R": "quad", "SPRINGA": "line", "T3D2": "line", "GAPUNI": "line"}
+MESHIO_CELL_TYPE = {
+    "C3D8": "hexahedron",
+    "C3D8I": "hexahedron",
+    "C3D8R": "hexahedron",
+    "S3": "triangle",
+    "S4": "quad",
+    "S4R": "quad",
+    "SPRINGA": "line",
+    "T3D2": "line",
+    "GAPUNI": "line",
+}
 SOLID_TYPES = {"C3D8", "C3D8I", "C3D8R"}
 SHELL_TYPES = {"S3", "S4", "S4R"}
 # ccx 2.20 rejects or mis-handles these (see reference/calculix.md): refuse them instead of writing a
 # deck that fails or silently shifts results.
-UNSUPPORTED_TYPES = {"M3D3": "accepted by ccx but shifts results 1-2 %; use S3",
-                     "SFM3D3": "unknown to ccx; use S3", "SFM3D4": "unknown to ccx; use S4",
-                     "R3D3": "unknown to ccx", "R3D4": "unknown to ccx", "CONN3D2": "unknown to ccx; use SPRINGA"}
+UNSUPPORTED_TYPES = {
+    "M3D3": "accepted by ccx but shifts results 1-2 %; use S3",
+    "SFM3D3": "unknown to ccx; use S3",
+    "SFM3D4": "unknown to ccx; use S4",
+    "R3D3": "unknown to ccx",
+    "R3D4": "unknown to ccx",
+    "CONN3D2": "unknown to ccx; use SPRINGA",
+}
 IDS_PER_LINE = 16
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-.]{0,79}$")
 
@@ -46,6 +69,7 @@ _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-.]{0,79}$")
 @dataclass(frozen=True)
 class LinearElastic:
     """Isotropic linear elastic material: Young's modulus in MPa, Poisson ratio."""
+
     name: str
     youngs_modulus_mpa: float
     poisson_ratio: float
@@ -55,6 +79,7 @@ class LinearElastic:
 class MooneyRivlin:
     """Mooney-Rivlin hyperelastic material: C10, C01 in MPa, D1 in 1/MPa (must be > 0: with D1 = 0,
     which Abaqus reads as incompressible, ccx 2.20 silently substitutes a default D1, e.g. 0.125)."""
+
     name: str
     c10_mpa: float
     c01_mpa: float
@@ -65,6 +90,7 @@ class MooneyRivlin:
 class UserMaterial:
     """*USER MATERIAL placeholder: ccx's built-in laws are selected by name (e.g. `ELASTIC_FIBER...`,
     constants C10, D1, then ax, ay, k1, k2 per fibre family); Abaqus needs a matching UMAT."""
+
     name: str
     constants: tuple[float, ...]
 
@@ -74,6 +100,7 @@ class Orientation:
     """A cylindrical local system (*ORIENTATION, SYSTEM=CYLINDRICAL): the axis runs from point a to point b
     (mm).  Local directions: 1 radial, 2 circumferential, 3 axial (a -> b).  Used for the annulus fibres
     of each disc, whose two families lie in the circumferential-axial plane."""
+
     name: str
     axis_a_mm: tuple[float, float, float]
     axis_b_mm: tuple[float, float, float]
@@ -90,6 +117,7 @@ class Section:
     gap: (clearance mm, unit direction (3,), stiffness N/mm) of GAPUNI elements (ccx *GAP): the gap stays
     open while clearance + direction . (u2 - u1) > 0 (node 1 -> node 2; checked on ccx 2.20).
     """
+
     elset: str
     material: str | None = None
     thickness_mm: float | None = None
@@ -109,6 +137,7 @@ class FEModel:
     LinearElastic / MooneyRivlin / UserMaterial.  sections: list of Section.  orientations: list of
     Orientation referred to by solid sections.
     """
+
     nodes: np.ndarray
     element_blocks: dict[str, tuple[str, np.ndarray]]
     node_sets: dict[str, np.ndarray] = field(default_factory=dict)
@@ -133,15 +162,16 @@ class FEModel:
 
 def _check_name(kind: str, name: str) -> None:
     if not isinstance(name, str) or not _NAME.match(name):
-        raise ValueError(f"{kind} name {name!r} is not a valid Abaqus name (a letter, then up to 79 of "
-                         f"letters, digits, '_', '-', '.'; no spaces or commas)")
+        raise ValueError(
+            f"{kind} name {name!r} is not a valid Abaqus name (a letter, then up to 79 of "
+            f"letters, digits, '_', '-', '.'; no spaces or commas)"
+        )
 
 
 def _check_indices(kind: str, name: str, idx: np.ndarray, n: int) -> np.ndarray:
     idx = np.asarray(idx)
     if idx.ndim != 1 or (idx.size and not np.issubdtype(idx.dtype, np.integer)):
-        raise ValueError(f"{kind} {name!r} must be a 1-D integer index array, got shape {idx.shape} "
-                         f"dtype {idx.dtype}")
+        raise ValueError(f"{kind} {name!r} must be a 1-D integer index array, got shape {idx.shape} dtype {idx.dtype}")
     if idx.size == 0:
         raise ValueError(f"{kind} {name!r} is empty (Abaqus rejects empty sets)")
     if idx.min() < 0 or idx.max() >= n:
@@ -164,13 +194,15 @@ def validate_model(model: FEModel) -> None:
         if etype in UNSUPPORTED_TYPES:
             raise ValueError(f"element block {name!r}: type {etype} is not supported ({UNSUPPORTED_TYPES[etype]})")
         if etype not in NODES_PER_ELEMENT:
-            raise ValueError(f"element block {name!r}: unknown element type {etype!r}; "
-                             f"supported: {sorted(NODES_PER_ELEMENT)}")
+            raise ValueError(
+                f"element block {name!r}: unknown element type {etype!r}; supported: {sorted(NODES_PER_ELEMENT)}"
+            )
         conn = np.asarray(conn)
         k = NODES_PER_ELEMENT[etype]
         if conn.ndim != 2 or conn.shape[1] != k or len(conn) == 0:
-            raise ValueError(f"element block {name!r}: {etype} needs a non-empty (E, {k}) connectivity, "
-                             f"got shape {conn.shape}")
+            raise ValueError(
+                f"element block {name!r}: {etype} needs a non-empty (E, {k}) connectivity, got shape {conn.shape}"
+            )
         if not np.issubdtype(conn.dtype, np.integer):
             raise ValueError(f"element block {name!r}: connectivity must be integer, got {conn.dtype}")
         if conn.min() < 0 or conn.max() >= n_nodes:
@@ -193,8 +225,10 @@ def validate_model(model: FEModel) -> None:
             raise ValueError(f"material {mat.name!r} is defined twice")
         mat_names.add(mat.name.upper())
         if isinstance(mat, MooneyRivlin) and not mat.d1_per_mpa > 0:
-            raise ValueError(f"material {mat.name!r}: Mooney-Rivlin D1 must be > 0 (ccx replaces D1 = 0 by a "
-                             f"default compressibility, so the two solvers would disagree)")
+            raise ValueError(
+                f"material {mat.name!r}: Mooney-Rivlin D1 must be > 0 (ccx replaces D1 = 0 by a "
+                f"default compressibility, so the two solvers would disagree)"
+            )
         if isinstance(mat, LinearElastic) and not (mat.youngs_modulus_mpa > 0 and -1 < mat.poisson_ratio < 0.5):
             raise ValueError(f"material {mat.name!r}: needs E > 0 MPa and -1 < Poisson ratio < 0.5")
     orientation_names = set()
@@ -204,8 +238,10 @@ def validate_model(model: FEModel) -> None:
         if a.shape != (3,) or b.shape != (3,) or not np.isfinite([a, b]).all() or np.linalg.norm(b - a) <= 0:
             raise ValueError(f"orientation {o.name!r} needs two distinct finite axis points (mm)")
         orientation_names.add(o.name.upper())
-    elsets = {**{b.upper(): model.element_blocks[b][0] for b in model.element_blocks},
-              **{s.upper(): None for s in model.element_sets}}
+    elsets = {
+        **{b.upper(): model.element_blocks[b][0] for b in model.element_blocks},
+        **{s.upper(): None for s in model.element_sets},
+    }
     for sec in model.sections:
         if sec.elset.upper() not in elsets:
             raise ValueError(f"section refers to unknown element set {sec.elset!r}")
@@ -225,15 +261,19 @@ def validate_model(model: FEModel) -> None:
                 raise ValueError(f"gap section on {sec.elset!r} needs gap=(clearance, direction, stiffness)")
             clearance, direction, stiffness = sec.gap
             if not (np.isfinite(clearance) and stiffness > 0 and abs(np.linalg.norm(direction) - 1) < 1e-6):
-                raise ValueError(f"gap section on {sec.elset!r}: needs a finite clearance (mm), a unit direction "
-                                 f"and a stiffness > 0 N/mm, got {sec.gap}")
+                raise ValueError(
+                    f"gap section on {sec.elset!r}: needs a finite clearance (mm), a unit direction "
+                    f"and a stiffness > 0 N/mm, got {sec.gap}"
+                )
             continue
         if sec.material is None or sec.material.upper() not in mat_names:
             raise ValueError(f"section on {sec.elset!r} refers to unknown material {sec.material!r}")
-        if sec.orientation is not None and (etype not in SOLID_TYPES
-                                            or sec.orientation.upper() not in orientation_names):
-            raise ValueError(f"section on {sec.elset!r}: orientation {sec.orientation!r} is unknown or the "
-                             f"elements are not solids")
+        if sec.orientation is not None and (
+            etype not in SOLID_TYPES or sec.orientation.upper() not in orientation_names
+        ):
+            raise ValueError(
+                f"section on {sec.elset!r}: orientation {sec.orientation!r} is unknown or the elements are not solids"
+            )
         if etype in SHELL_TYPES and not (sec.thickness_mm and sec.thickness_mm > 0):
             raise ValueError(f"shell section on {sec.elset!r} needs thickness_mm > 0")
         if etype == "T3D2" and not (sec.area_mm2 and sec.area_mm2 > 0):
@@ -287,12 +327,14 @@ def _material_text(mat) -> str:
     if isinstance(mat, LinearElastic):
         out += f"*ELASTIC\n{_fmt_float(mat.youngs_modulus_mpa)}, {_fmt_float(mat.poisson_ratio)}\n"
     elif isinstance(mat, MooneyRivlin):
-        out += (f"*HYPERELASTIC, MOONEY-RIVLIN\n{_fmt_float(mat.c10_mpa)}, {_fmt_float(mat.c01_mpa)}, "
-                f"{_fmt_float(mat.d1_per_mpa)}\n")
+        out += (
+            f"*HYPERELASTIC, MOONEY-RIVLIN\n{_fmt_float(mat.c10_mpa)}, {_fmt_float(mat.c01_mpa)}, "
+            f"{_fmt_float(mat.d1_per_mpa)}\n"
+        )
     elif isinstance(mat, UserMaterial):
         c = [_fmt_float(x) for x in mat.constants]
         out += f"*USER MATERIAL, CONSTANTS={len(c)}\n"
-        out += "".join(", ".join(c[i:i + 8]) + "\n" for i in range(0, len(c), 8))  # 8 per line (Abaqus rule)
+        out += "".join(", ".join(c[i : i + 8]) + "\n" for i in range(0, len(c), 8))  # 8 per line (Abaqus rule)
     else:
         raise ValueError(f"unknown material kind {type(mat).__name__}")
     return out
@@ -303,8 +345,9 @@ def _section_text(model: FEModel, sec: Section) -> str:
     if etype == "SPRINGA":
         table = np.asarray(sec.spring_force_elongation, dtype=np.float64)
         # first data line of a SPRINGA *SPRING is empty (no DOFs for axial springs)
-        return (f"*SPRING, ELSET={sec.elset}, NONLINEAR\n\n"
-                + "".join(f"{_fmt_float(f)}, {_fmt_float(d)}\n" for f, d in table))
+        return f"*SPRING, ELSET={sec.elset}, NONLINEAR\n\n" + "".join(
+            f"{_fmt_float(f)}, {_fmt_float(d)}\n" for f, d in table
+        )
     if etype == "GAPUNI":
         clearance, (nx, ny, nz), stiffness = sec.gap
         vals = ", ".join(_fmt_float(v) for v in (clearance, nx, ny, nz))
@@ -326,14 +369,17 @@ def model_to_inp_text(model: FEModel, decimals: int = 6, provenance: str = "") -
     """The model's deck as text (see module docstring for the dialect)."""
     validate_model(model)
     from spinecohort import __version__
+
     nodes = np.asarray(model.nodes, dtype=np.float64)
     parts = [
         "** spinecohort Abaqus/CalculiX input deck\n",
         "** units: length mm, force N, stress MPa (moments N.mm)\n",
         f"** written by spinecohort {__version__}" + (f"; {provenance}" if provenance else "") + "\n",
         f"** {len(nodes)} nodes, {model.n_elements} elements; node and element ids 1-based, compact\n",
-        "*HEADING\n", model.heading.replace("\n", " ") + "\n",
-        "*NODE, NSET=NALL\n", format_node_lines(np.arange(1, len(nodes) + 1), nodes, decimals),
+        "*HEADING\n",
+        model.heading.replace("\n", " ") + "\n",
+        "*NODE, NSET=NALL\n",
+        format_node_lines(np.arange(1, len(nodes) + 1), nodes, decimals),
     ]
     first = 1
     for name, (etype, conn) in model.element_blocks.items():
@@ -371,6 +417,7 @@ _NEXT_KEYWORD = re.compile(r"^\*(?!\*)", re.MULTILINE)
 class InpTemplate:
     """A deck split around its *NODE data lines: head (up to and including the *NODE keyword line),
     node ids in file order, tail (from the next keyword on)."""
+
     head: str
     node_ids: np.ndarray
     tail: str
@@ -423,8 +470,9 @@ def _read_text(template: str | Path) -> str:
     return template
 
 
-def substitute_coordinates(template: str | Path | InpTemplate, points_mm: np.ndarray,
-                           out_path: str | Path | None = None) -> str:
+def substitute_coordinates(
+    template: str | Path | InpTemplate, points_mm: np.ndarray, out_path: str | Path | None = None
+) -> str:
     """A model's deck = the template deck with only its *NODE data lines replaced by `points_mm`.
 
     points_mm: (N, 3) coordinates in mm, in the template's node order.  Node ids, elements, sets,
@@ -434,8 +482,9 @@ def substitute_coordinates(template: str | Path | InpTemplate, points_mm: np.nda
     tpl = template if isinstance(template, InpTemplate) else parse_template(template)
     points_mm = np.asarray(points_mm, dtype=np.float64)
     if points_mm.shape != (len(tpl.node_ids), 3):
-        raise ValueError(f"points must have shape ({len(tpl.node_ids)}, 3) to match the template's nodes, "
-                         f"got {points_mm.shape}")
+        raise ValueError(
+            f"points must have shape ({len(tpl.node_ids)}, 3) to match the template's nodes, got {points_mm.shape}"
+        )
     if not np.isfinite(points_mm).all():
         raise ValueError("points contain non-finite coordinates")
     text = tpl.head + format_node_lines(tpl.node_ids, points_mm, tpl.decimals) + tpl.tail
@@ -476,14 +525,15 @@ def write_vtu(model: FEModel, path: str | Path) -> Path:
     validate_model(model)
     cells, element_id, block = [], [], []
     first = 1
-    for i, (name, (etype, conn)) in enumerate(model.element_blocks.items()):
+    for i, (_name, (etype, conn)) in enumerate(model.element_blocks.items()):
         conn = np.asarray(conn, dtype=np.int64)
         cells.append((MESHIO_CELL_TYPE[etype], conn))
         element_id.append(np.arange(first, first + len(conn), dtype=np.int64))
         block.append(np.full(len(conn), i, dtype=np.int32))
         first += len(conn)
-    mesh = meshio.Mesh(np.asarray(model.nodes, dtype=np.float64), cells,
-                       cell_data={"element_id": element_id, "block": block})
+    mesh = meshio.Mesh(
+        np.asarray(model.nodes, dtype=np.float64), cells, cell_data={"element_id": element_id, "block": block}
+    )
     path = Path(path)
     meshio.write(path, mesh, file_format="vtu", binary=True)
     return path

@@ -81,26 +81,31 @@ def _bin(x, conditions_points) -> np.ndarray:
 
 def rpv_points(rpv_deg):
     """GAP points of the relative pelvic version (3/2/0/1; NaN for NaN)."""
-    return _bin(rpv_deg, [(lambda x: x < -15, 3.0), (lambda x: x < -7, 2.0), (lambda x: x <= 5, 0.0),
-                          (lambda x: x > 5, 1.0)])
+    return _bin(
+        rpv_deg, [(lambda x: x < -15, 3.0), (lambda x: x < -7, 2.0), (lambda x: x <= 5, 0.0), (lambda x: x > 5, 1.0)]
+    )
 
 
 def rll_points(rll_deg):
     """GAP points of the relative lumbar lordosis (3/2/0/3; NaN for NaN)."""
-    return _bin(rll_deg, [(lambda x: x < -25, 3.0), (lambda x: x < -14, 2.0), (lambda x: x <= 11, 0.0),
-                          (lambda x: x > 11, 3.0)])
+    return _bin(
+        rll_deg, [(lambda x: x < -25, 3.0), (lambda x: x < -14, 2.0), (lambda x: x <= 11, 0.0), (lambda x: x > 11, 3.0)]
+    )
 
 
 def ldi_points(ldi_percent):
     """GAP points of the lordosis distribution index (2/1/0/3; NaN for NaN)."""
-    return _bin(ldi_percent, [(lambda x: x < 40, 2.0), (lambda x: x < 50, 1.0), (lambda x: x <= 80, 0.0),
-                              (lambda x: x > 80, 3.0)])
+    return _bin(
+        ldi_percent,
+        [(lambda x: x < 40, 2.0), (lambda x: x < 50, 1.0), (lambda x: x <= 80, 0.0), (lambda x: x > 80, 3.0)],
+    )
 
 
 def rsa_points(rsa_deg):
     """GAP points of the relative spinopelvic alignment (3/1/0/1; NaN for NaN)."""
-    return _bin(rsa_deg, [(lambda x: x > 18, 3.0), (lambda x: x > 10, 1.0), (lambda x: x >= -7, 0.0),
-                          (lambda x: x < -7, 1.0)])
+    return _bin(
+        rsa_deg, [(lambda x: x > 18, 3.0), (lambda x: x > 10, 1.0), (lambda x: x >= -7, 0.0), (lambda x: x < -7, 1.0)]
+    )
 
 
 def age_points(age_years):
@@ -110,8 +115,7 @@ def age_points(age_years):
 
 def gap_total(rpv_pts, rll_pts, ldi_pts, rsa_pts, age_pts=0.0):
     """Sum of the component points (NaN if any component is NaN)."""
-    return (_as_float(rpv_pts) + _as_float(rll_pts) + _as_float(ldi_pts) + _as_float(rsa_pts)
-            + _as_float(age_pts))
+    return _as_float(rpv_pts) + _as_float(rll_pts) + _as_float(ldi_pts) + _as_float(rsa_pts) + _as_float(age_pts)
 
 
 def gap_category(total) -> np.ndarray:
@@ -120,8 +124,16 @@ def gap_category(total) -> np.ndarray:
     return np.select([t <= 2, t <= 6, t > 6], ["P", "MD", "SD"], default="").astype(object)
 
 
-def gap_score(pi_deg, ss_deg, ll_deg, ll_l4s1_deg, gt_deg, age_years=np.nan,
-              ldi_undefined_points: float = 0.0, min_ll_deg: float = LDI_MIN_LL_DEG) -> dict[str, np.ndarray]:
+def gap_score(
+    pi_deg,
+    ss_deg,
+    ll_deg,
+    ll_l4s1_deg,
+    gt_deg,
+    age_years=np.nan,
+    ldi_undefined_points: float = 0.0,
+    min_ll_deg: float = LDI_MIN_LL_DEG,
+) -> dict[str, np.ndarray]:
     """Full GAP from the measured angles (deg) and age (years; NaN = unknown).
 
     ldi_undefined_points: points given to LDI where it is undefined (LL <= ``min_ll_deg``); 0 as in the open
@@ -141,5 +153,14 @@ def gap_score(pi_deg, ss_deg, ll_deg, ll_l4s1_deg, gt_deg, age_years=np.nan,
     noage = gap_total(*pts.values())
     agep = age_points(age_years)
     total = noage + agep
-    return {"RPV": rpv, "RLL": rll, "LDI": ldi, "RSA": rsa, **pts, "GAP_noage": noage, "Age_pts": agep,
-            "GAP": total, "GAP_category": gap_category(total)}
+    return {
+        "RPV": rpv,
+        "RLL": rll,
+        "LDI": ldi,
+        "RSA": rsa,
+        **pts,
+        "GAP_noage": noage,
+        "Age_pts": agep,
+        "GAP": total,
+        "GAP_category": gap_category(total),
+    }

@@ -39,6 +39,7 @@ class CalculixError(RuntimeError):
 class NodePrint:
     """One block of a `.dat` file: `quantity` (e.g. 'displacements (vx,vy,vz)'), node set, step time,
     node ids (K,) and values (K, C) in the deck's units (mm, N, MPa)."""
+
     quantity: str
     node_set: str
     time: float
@@ -63,7 +64,8 @@ def find_ccx() -> str:
     if not exe or not Path(exe).exists():
         raise FileNotFoundError(
             f"CalculiX solver 'ccx' not found on PATH (nor $CCX); install the Debian package "
-            f"'{CCX_DEBIAN_PACKAGE}' (scripts/install_system_deps.sh) or set CCX to its path")
+            f"'{CCX_DEBIAN_PACKAGE}' (scripts/install_system_deps.sh) or set CCX to its path"
+        )
     return exe
 
 
@@ -88,8 +90,13 @@ def parse_dat(text: str) -> list[NodePrint]:
             elif rows:
                 break  # blank line after the data ends the block
             i += 1
-        has_ids = bool(rows) and rows[0][0].lstrip("-").isdigit() and len(rows[0]) > 1 \
-            and "." not in rows[0][0] and "E" not in rows[0][0].upper()
+        has_ids = (
+            bool(rows)
+            and rows[0][0].lstrip("-").isdigit()
+            and len(rows[0]) > 1
+            and "." not in rows[0][0]
+            and "E" not in rows[0][0].upper()
+        )
         if has_ids:
             width = len(rows[0])
             if any(len(r) != width for r in rows):
@@ -114,8 +121,14 @@ def log_problems(log: str, allowed_warnings: tuple[str, ...] = ()) -> list[str]:
     return problems
 
 
-def run_ccx(inp_path: str | Path, workdir: str | Path, threads: int = 1, timeout_s: float = 3600.0,
-            allowed_warnings: tuple[str, ...] = (), allowed_returncodes: tuple[int, ...] = (0,)) -> CcxResult:
+def run_ccx(
+    inp_path: str | Path,
+    workdir: str | Path,
+    threads: int = 1,
+    timeout_s: float = 3600.0,
+    allowed_warnings: tuple[str, ...] = (),
+    allowed_returncodes: tuple[int, ...] = (0,),
+) -> CcxResult:
     """Run `ccx -i job` on a copy of the deck in `workdir`; raise CalculixError unless the run is clean.
 
     threads: OMP_NUM_THREADS and CCX_NPROC_* for the run (ccx uses one CPU unless told).
@@ -137,8 +150,13 @@ def run_ccx(inp_path: str | Path, workdir: str | Path, threads: int = 1, timeout
         shutil.copyfile(inp_path, target)
     for suffix in (".dat", ".frd", ".sta", ".cvg"):
         (workdir / f"{job}{suffix}").unlink(missing_ok=True)  # never read a previous run's results
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "CCX_NPROC_STIFFNESS": str(threads),
-           "CCX_NPROC_EQUATION_SOLVER": str(threads), "CCX_NPROC_RESULTS": str(threads)}
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": str(threads),
+        "CCX_NPROC_STIFFNESS": str(threads),
+        "CCX_NPROC_EQUATION_SOLVER": str(threads),
+        "CCX_NPROC_RESULTS": str(threads),
+    }
     log_path = workdir / f"{job}.log"
     t0 = time.perf_counter()
     # the log goes straight to a file (a long NLGEOM run prints megabytes); os.wait4 gives this one
@@ -162,22 +180,28 @@ def run_ccx(inp_path: str | Path, workdir: str | Path, threads: int = 1, timeout
     problems = log_problems(log, allowed_warnings)
     if returncode not in allowed_returncodes or problems:
         shown = "\n".join(problems[:20]) or log[-2000:]
-        raise CalculixError(f"ccx on {inp_path} failed (exit code {returncode}, "
-                            f"{len(problems)} error/warning lines; log {log_path}):\n{shown}")
+        raise CalculixError(
+            f"ccx on {inp_path} failed (exit code {returncode}, "
+            f"{len(problems)} error/warning lines; log {log_path}):\n{shown}"
+        )
     dat = workdir / f"{job}.dat"
     prints = parse_dat(dat.read_text()) if dat.exists() else []
     return CcxResult(returncode, log, prints, workdir, job, seconds, peak_mb)
 
 
-_FIBRE_CARD = re.compile(r"^(\*MATERIAL,\s*NAME=ELASTIC_FIBER[^\n]*\n)\*USER MATERIAL,\s*CONSTANTS=\d+\s*\n"
-                         r"((?:[^*\n][^\n]*\n)+)", re.IGNORECASE | re.MULTILINE)
+_FIBRE_CARD = re.compile(
+    r"^(\*MATERIAL,\s*NAME=ELASTIC_FIBER[^\n]*\n)\*USER MATERIAL,\s*CONSTANTS=\d+\s*\n"
+    r"((?:[^*\n][^\n]*\n)+)",
+    re.IGNORECASE | re.MULTILINE,
+)
 
 
 def fibre_ground_substance(model_data: str) -> str:
     """The deck with every ``ELASTIC_FIBER`` user material replaced by its ground substance
     (*HYPERELASTIC, NEO HOOKE with the same C10, D1).  ccx 2.20 crashes (segmentation fault) in a
     `*NO ANALYSIS` step as soon as an element uses the built-in fibre law, so the data check runs on the
-    ground substance; the fibre law itself is exercised by the analyses that solve (spinecohort.rom)."""
+    ground substance; the fibre law itself is exercised by the analyses that solve (spinecohort.rom.analysis)."""
+
     def repl(m):
         consts = [c for c in re.split(r"[,\s]+", m[2].strip()) if c]
         c10, d1 = float(consts[0]), float(consts[1])
@@ -188,8 +212,9 @@ def fibre_ground_substance(model_data: str) -> str:
     return _FIBRE_CARD.sub(repl, model_data)
 
 
-def check_input(inp_path: str | Path, workdir: str | Path, timeout_s: float = 600.0,
-                allowed_warnings: tuple[str, ...] = ()) -> CcxResult:
+def check_input(
+    inp_path: str | Path, workdir: str | Path, timeout_s: float = 600.0, allowed_warnings: tuple[str, ...] = ()
+) -> CcxResult:
     """CalculiX data check: the deck's model data (everything before its first *STEP) plus a
     `*NO ANALYSIS` step.  Raises CalculixError on any *ERROR (e.g. a nonpositive Jacobian) or an
     unexpected *WARNING (e.g. an unknown keyword).  See the module docstring for what it cannot catch.
@@ -199,7 +224,7 @@ def check_input(inp_path: str | Path, workdir: str | Path, timeout_s: float = 60
         raise ValueError(f"input deck {inp_path} does not exist")
     text = inp_path.read_text()
     step = re.search(r"^\*STEP\b", text, re.IGNORECASE | re.MULTILINE)
-    model_data = fibre_ground_substance(text[:step.start()] if step else text)
+    model_data = fibre_ground_substance(text[: step.start()] if step else text)
     if not model_data.endswith("\n"):
         model_data += "\n"
     workdir = Path(workdir)
@@ -209,8 +234,13 @@ def check_input(inp_path: str | Path, workdir: str | Path, timeout_s: float = 60
     deck.write_text(model_data + "*STEP\n*NO ANALYSIS\n*END STEP\n")
     # ccx 2.20 exits 201 after a clean *NO ANALYSIS run, so the log decides: no error lines, and the
     # run must have reached the step (an early abort would not print the analysis type)
-    result = run_ccx(deck, workdir, timeout_s=timeout_s,
-                     allowed_warnings=(NO_ANALYSIS_WARNING, *allowed_warnings), allowed_returncodes=(0, 201))
+    result = run_ccx(
+        deck,
+        workdir,
+        timeout_s=timeout_s,
+        allowed_warnings=(NO_ANALYSIS_WARNING, *allowed_warnings),
+        allowed_returncodes=(0, 201),
+    )
     if "No analysis was selected" not in result.log:
         raise CalculixError(f"ccx data check of {inp_path} stopped before reaching the step:\n{result.log[-2000:]}")
     return result

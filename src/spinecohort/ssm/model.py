@@ -58,11 +58,10 @@ class SSM:
         return coeff / np.sqrt(self.eigenvalues[:m])
 
     def save(self, path: str | Path, **extra) -> None:
-        np.savez(path, mean=self.mean, modes=self.modes, eigenvalues=self.eigenvalues,
-                 n_train=self.n_train, **extra)
+        np.savez(path, mean=self.mean, modes=self.modes, eigenvalues=self.eigenvalues, n_train=self.n_train, **extra)
 
     @classmethod
-    def load(cls, path: str | Path) -> "SSM":
+    def load(cls, path: str | Path) -> SSM:
         with np.load(path) as z:
             return cls(z["mean"], z["modes"], z["eigenvalues"], int(z["n_train"]))
 

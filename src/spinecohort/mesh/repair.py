@@ -30,7 +30,7 @@ import pyvista as pv
 import scipy.optimize
 import scipy.sparse
 
-from spinecohort.quality import (
+from spinecohort.mesh.quality import (
     CORNER_NEIGHBOURS,
     HEX_EDGES,
     HEX_FACES,
@@ -76,16 +76,18 @@ class UntangleContext:
     incidence: scipy.sparse.csr_matrix  # (E, N) element-node incidence
 
 
-def prepare_untangle(hexes: np.ndarray, reference_points: np.ndarray,
-                     feature_angle_deg: float = 30.0) -> UntangleContext:
+def prepare_untangle(
+    hexes: np.ndarray, reference_points: np.ndarray, feature_angle_deg: float = 30.0
+) -> UntangleContext:
     """Precompute the topology and reference quality for ``untangle``; raises ValueError if the reference is invalid."""
     ref, hexes = _check_mesh(reference_points, hexes)
     if ref.ndim != 2:
         raise ValueError(f"reference_points must be (n_nodes, 3), got {ref.shape}")
     sj_ref, invalid_ref, _ = _bad_elements(ref, hexes, np.zeros(len(hexes)))
     if invalid_ref.any():
-        raise ValueError(f"reference mesh has {invalid_ref.sum()} invalid elements, "
-                         f"e.g. {np.flatnonzero(invalid_ref)[:5].tolist()}")
+        raise ValueError(
+            f"reference mesh has {invalid_ref.sum()} invalid elements, e.g. {np.flatnonzero(invalid_ref)[:5].tolist()}"
+        )
     faces = boundary_faces(hexes)
     is_boundary = np.zeros(len(ref), bool)
     is_boundary[faces.ravel()] = True
@@ -162,8 +164,13 @@ def _surface_near(points: np.ndarray, faces: np.ndarray, node_mask: np.ndarray) 
     quads = faces[node_mask[faces].any(1)]
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     surf = pv.PolyData(points, faces=np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
-    return surf.compute_normals(cell_normals=True, point_normals=False, split_vertices=False,
-                                consistent_normals=False, auto_orient_normals=False)
+    return surf.compute_normals(
+        cell_normals=True,
+        point_normals=False,
+        split_vertices=False,
+        consistent_normals=False,
+        auto_orient_normals=False,
+    )
 
 
 def _node_normals(n_face, faces, n_nodes, feature_angle_deg):
@@ -250,8 +257,24 @@ def _recheck(new, hexes, target, elems, before):
     return sj, invalid, below
 
 
-def _attempt(points, ref, hexes, faces, bad, rings, sliding, frames, feature, is_boundary, inc, target, mu, lam,
-             max_outer, maxiter):
+def _attempt(
+    points,
+    ref,
+    hexes,
+    faces,
+    bad,
+    rings,
+    sliding,
+    frames,
+    feature,
+    is_boundary,
+    inc,
+    target,
+    mu,
+    lam,
+    max_outer,
+    maxiter,
+):
     """One untangling attempt; returns repaired points (copy) and patch element ids.
 
     Sliding nodes move in their tangent plane during L-BFGS and are then projected back onto the sample's
@@ -307,8 +330,7 @@ def _attempt(points, ref, hexes, faces, bad, rings, sliding, frames, feature, is
     stagnant = 0
     for _ in range(max_outer):
         eps = np.sqrt(1e-8 + 0.04 * min(d.min(), 0.0) ** 2)
-        res = scipy.optimize.minimize(fun, z, args=(eps,), jac=True, method="L-BFGS-B",
-                                      options={"maxiter": maxiter})
+        res = scipy.optimize.minimize(fun, z, args=(eps,), jac=True, method="L-BFGS-B", options={"maxiter": maxiter})
         z = res.x
         x = positions(z)
         if len(free2):
@@ -360,13 +382,22 @@ def untangle(
     if context is None:
         context = prepare_untangle(hexes, ref, feature_angle_deg)
     elif context.incidence.shape != (len(hexes), len(points)):
-        raise ValueError(f"context was prepared for {context.incidence.shape} (elements, nodes), "
-                         f"mesh has {(len(hexes), len(points))}")
+        raise ValueError(
+            f"context was prepared for {context.incidence.shape} (elements, nodes), "
+            f"mesh has {(len(hexes), len(points))}"
+        )
     ctx = context
     target = np.minimum(tau, 0.5 * ctx.sj_reference)
     sj0, invalid0, bad0 = _bad_elements(points, hexes, target)
-    report = RepairReport(int(invalid0.sum()), int(invalid0.sum()), int(bad0.sum()), float(sj0.min()),
-                          float(sj0.min()), np.zeros(0, dtype=np.int64), 0.0)
+    report = RepairReport(
+        int(invalid0.sum()),
+        int(invalid0.sum()),
+        int(bad0.sum()),
+        float(sj0.min()),
+        float(sj0.min()),
+        np.zeros(0, dtype=np.int64),
+        0.0,
+    )
     if not bad0.any():
         return points.copy(), report
 
@@ -378,26 +409,47 @@ def untangle(
     corner_nodes = np.concatenate([hexes[bad][:, :, None], hexes[bad][:, CORNER_NEIGHBOURS]], axis=2)
     inverted_corner = corner_jacobians(points, hexes[bad]) <= 0
     surface_only = bool(is_boundary[corner_nodes].all(-1)[inverted_corner].any()) or _folded_surface_faces(
-        points, ref, faces, bad_nodes=hexes[bad])
+        points, ref, faces, bad_nodes=hexes[bad]
+    )
     steps = ([s for s in plan if s[1]] or list(plan)) if surface_only else list(plan)
 
     best = None
     for rings, sliding in steps:
-        new, elems = _attempt(points, ref, hexes, faces, bad, rings, sliding, frames, feature, is_boundary, inc,
-                              target, mu, lam, max_outer, maxiter)
+        new, elems = _attempt(
+            points,
+            ref,
+            hexes,
+            faces,
+            bad,
+            rings,
+            sliding,
+            frames,
+            feature,
+            is_boundary,
+            inc,
+            target,
+            mu,
+            lam,
+            max_outer,
+            maxiter,
+        )
         if new is None:
             report.attempts.append(f"rings={rings} sliding={sliding}: no movable node")
             continue
         sj, invalid, below = _recheck(new, hexes, target, elems, (sj0, invalid0, bad0))
-        report.attempts.append(f"rings={rings} sliding={sliding}: {invalid.sum()} invalid, "
-                               f"{below.sum()} below target, min sJ {sj.min():.3f}")
+        report.attempts.append(
+            f"rings={rings} sliding={sliding}: {invalid.sum()} invalid, "
+            f"{below.sum()} below target, min sJ {sj.min():.3f}"
+        )
         if best is None or (invalid.sum(), below.sum()) < (best[1].sum(), best[2].sum()):
             best = (new, invalid, below, sj, rings, sliding)
         if not below.any():
             break
     if best is None:
-        raise RepairError(f"untangling failed: no movable node near the {invalid0.sum()} invalid elements "
-                          f"(all surface/feature nodes); attempts: {report.attempts}")
+        raise RepairError(
+            f"untangling failed: no movable node near the {invalid0.sum()} invalid elements "
+            f"(all surface/feature nodes); attempts: {report.attempts}"
+        )
     new, invalid, below, sj, rings, sliding = best
     if invalid.any():
         raise RepairError(

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation, Slerp
 
-from .landmarks import LEVELS, Landmarks
+from spinecohort.cohort.landmarks import LEVELS, Landmarks
 
 LIGAMENT_GROUPS = ("ISL", "SSL", "LF", "CL", "ITL", "PLL", "ALL")
 
@@ -57,6 +57,7 @@ TEMPLATE_RESOLUTIONS = {
 
 # ----------------------------------------------------------------------------------------------------------
 # The 2-D O-grid
+
 
 @dataclass
 class OGrid:
@@ -93,11 +94,16 @@ def _polygon_area(p: np.ndarray) -> float:
 def core_boundary_ids(n: int) -> np.ndarray:
     """Node ids of the core block's boundary, counter-clockwise in the order of ``_square_boundary``: the
     j-th one starts ray j, whose ring nodes are ``n_core + k * 4n + j``."""
+
     def core_id(i, j):
         return j * (n + 1) + i
 
-    return np.array([core_id(n, j) for j in range(n)] + [core_id(n - i, n) for i in range(n)]
-                    + [core_id(0, n - j) for j in range(n)] + [core_id(i, 0) for i in range(n)])
+    return np.array(
+        [core_id(n, j) for j in range(n)]
+        + [core_id(n - i, n) for i in range(n)]
+        + [core_id(0, n - j) for j in range(n)]
+        + [core_id(i, 0) for i in range(n)]
+    )
 
 
 def ogrid(res: TemplateResolution) -> OGrid:
@@ -114,16 +120,18 @@ def ogrid(res: TemplateResolution) -> OGrid:
     total = _polygon_area(outer)
     f_np = brentq(lambda f: _polygon_area(inner + f * (outer - inner)) - res.np_area_fraction * total, 0.0, 1.0)
     k_np = max(1, (rings - 1) // 2)
-    f = np.concatenate([np.linspace(0, f_np, k_np + 1)[1:],
-                        np.linspace(f_np, 1.0 - res.shell_fraction, rings - k_np)[1:], [1.0]])
+    f = np.concatenate(
+        [np.linspace(0, f_np, k_np + 1)[1:], np.linspace(f_np, 1.0 - res.shell_fraction, rings - k_np)[1:], [1.0]]
+    )
     ring_nodes = inner[None] + f[:, None, None] * (outer - inner)[None]  # (rings, 4n, 2)
     nodes = np.concatenate([core, ring_nodes.reshape(-1, 2)])
 
     def core_id(i, j):
         return j * (n + 1) + i
 
-    quads = [[core_id(i, j), core_id(i + 1, j), core_id(i + 1, j + 1), core_id(i, j + 1)]
-             for j in range(n) for i in range(n)]
+    quads = [
+        [core_id(i, j), core_id(i + 1, j), core_id(i + 1, j + 1), core_id(i, j + 1)] for j in range(n) for i in range(n)
+    ]
     ring_of = [0] * len(quads)
     prev = core_boundary_ids(n)
     m = 4 * n
@@ -144,6 +152,7 @@ def ogrid(res: TemplateResolution) -> OGrid:
 
 # ----------------------------------------------------------------------------------------------------------
 # Endplate frames of a triangulated shape (for placing the template before morphing)
+
 
 @dataclass
 class Endplate:
@@ -167,6 +176,7 @@ def fit_endplate(points: np.ndarray, lateral_hint=(1.0, 0.0, 0.0)) -> Endplate:
 
 # ----------------------------------------------------------------------------------------------------------
 # The template
+
 
 @dataclass
 class HexTemplate:
@@ -200,30 +210,61 @@ class HexTemplate:
 
     def save(self, path: str | Path) -> None:
         meta = {
-            "elset_kind": self.elset_kind, "layers": self.layers, "resolution": asdict(self.resolution),
-            "np_ring": self.grid.np_ring, "shell_ring": self.grid.shell_ring, "meta": self.meta,
-            "elsets": list(self.elsets), "nsets": list(self.nsets),
+            "elset_kind": self.elset_kind,
+            "layers": self.layers,
+            "resolution": asdict(self.resolution),
+            "np_ring": self.grid.np_ring,
+            "shell_ring": self.grid.shell_ring,
+            "meta": self.meta,
+            "elsets": list(self.elsets),
+            "nsets": list(self.nsets),
         }
         arrays = {f"elset__{k}": v for k, v in self.elsets.items()}
         arrays.update({f"nset__{k}": v for k, v in self.nsets.items()})
-        np.savez(path, nodes=self.nodes, hexes=self.hexes, tris=self.tris, ligaments=self.ligaments,
-                 n_hex_nodes=self.n_hex_nodes, surface_vertex=self.surface_vertex,
-                 layer_of_node=self.layer_of_node, grid_nodes=self.grid.nodes, grid_quads=self.grid.quads,
-                 grid_quad_ring=self.grid.quad_ring, grid_outer=self.grid.outer,
-                 meta_json=np.array(json.dumps(meta)), **arrays)
+        np.savez(
+            path,
+            nodes=self.nodes,
+            hexes=self.hexes,
+            tris=self.tris,
+            ligaments=self.ligaments,
+            n_hex_nodes=self.n_hex_nodes,
+            surface_vertex=self.surface_vertex,
+            layer_of_node=self.layer_of_node,
+            grid_nodes=self.grid.nodes,
+            grid_quads=self.grid.quads,
+            grid_quad_ring=self.grid.quad_ring,
+            grid_outer=self.grid.outer,
+            meta_json=np.array(json.dumps(meta)),
+            **arrays,
+        )
 
     @classmethod
-    def load(cls, path: str | Path) -> "HexTemplate":
+    def load(cls, path: str | Path) -> HexTemplate:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta_json"]))
-            grid = OGrid(z["grid_nodes"], z["grid_quads"], z["grid_quad_ring"], z["grid_outer"],
-                         meta["np_ring"], meta["shell_ring"])
+            grid = OGrid(
+                z["grid_nodes"],
+                z["grid_quads"],
+                z["grid_quad_ring"],
+                z["grid_outer"],
+                meta["np_ring"],
+                meta["shell_ring"],
+            )
             return cls(
-                nodes=z["nodes"], hexes=z["hexes"], tris=z["tris"], ligaments=z["ligaments"],
-                elsets={k: z[f"elset__{k}"] for k in meta["elsets"]}, elset_kind=meta["elset_kind"],
-                nsets={k: z[f"nset__{k}"] for k in meta["nsets"]}, n_hex_nodes=int(z["n_hex_nodes"]),
-                surface_vertex=z["surface_vertex"], layer_of_node=z["layer_of_node"], layers=meta["layers"],
-                grid=grid, resolution=TemplateResolution(**meta["resolution"]), meta=meta["meta"],
+                nodes=z["nodes"],
+                hexes=z["hexes"],
+                tris=z["tris"],
+                ligaments=z["ligaments"],
+                elsets={k: z[f"elset__{k}"] for k in meta["elsets"]},
+                elset_kind=meta["elset_kind"],
+                nsets={k: z[f"nset__{k}"] for k in meta["nsets"]},
+                n_hex_nodes=int(z["n_hex_nodes"]),
+                surface_vertex=z["surface_vertex"],
+                layer_of_node=z["layer_of_node"],
+                layers=meta["layers"],
+                grid=grid,
+                resolution=TemplateResolution(**meta["resolution"]),
+                meta=meta["meta"],
             )
 
 
@@ -245,8 +286,9 @@ def layer_plan(res: TemplateResolution) -> list[dict]:
     return layers
 
 
-def build_template(mean_points: np.ndarray, mean_faces: np.ndarray, landmarks: Landmarks,
-                   res: TemplateResolution) -> HexTemplate:
+def build_template(
+    mean_points: np.ndarray, mean_faces: np.ndarray, landmarks: Landmarks, res: TemplateResolution
+) -> HexTemplate:
     """Assemble the template on a triangulated shape (the SSM mean): hex column placed by the endplate
     frames (before morphing), surface elements and ligaments from the shape's own vertices."""
     grid = ogrid(res)
@@ -292,8 +334,9 @@ def build_template(mean_points: np.ndarray, mean_faces: np.ndarray, landmarks: L
         if layer["kind"] == "s1":
             hex_nodes[L] = _place(grid.nodes, eps[("S1", "sup")])
         elif layer["kind"] == "body":
-            hex_nodes[L] = _place_between(grid.nodes, eps[(layer["level"], "inf")], eps[(layer["level"], "sup")],
-                                          layer["t"])
+            hex_nodes[L] = _place_between(
+                grid.nodes, eps[(layer["level"], "inf")], eps[(layer["level"], "sup")], layer["t"]
+            )
     fill_discs(hex_nodes, layers, res.cep_thickness_mm)
     hex_nodes = hex_nodes.reshape(-1, 3)
     layer_of_node = np.repeat(np.arange(n_layers), n2)
@@ -366,8 +409,21 @@ def build_template(mean_points: np.ndarray, mean_faces: np.ndarray, landmarks: L
             nsets[key] = np.unique(tris[tri_sets[key]])
 
     nodes = np.concatenate([hex_nodes, pts[surf_vertices]])
-    return HexTemplate(nodes, hexes, tris, ligaments, elsets_all, kind, nsets, hex_nodes.shape[0], surf_vertices,
-                       layer_of_node, layers, grid, res)
+    return HexTemplate(
+        nodes,
+        hexes,
+        tris,
+        ligaments,
+        elsets_all,
+        kind,
+        nsets,
+        hex_nodes.shape[0],
+        surf_vertices,
+        layer_of_node,
+        layers,
+        grid,
+        res,
+    )
 
 
 def _layer_index(layers: list[dict], level: str, t: float) -> int:

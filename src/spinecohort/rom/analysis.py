@@ -40,11 +40,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .abaqus import SOLID_TYPES, FEModel, Section, model_to_inp_text
-from .fe_export import (DEFAULT_MATERIALS, FEMaterials, disc_orientations, hex_section, ligament_table,
-                        material_cards)
-from .hex_template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
-from .landmarks import LEVELS
+from spinecohort.cohort.landmarks import LEVELS
+from spinecohort.fe.abaqus import SOLID_TYPES, FEModel, Section, model_to_inp_text
+from spinecohort.fe.export import (
+    DEFAULT_MATERIALS,
+    FEMaterials,
+    disc_orientations,
+    hex_section,
+    ligament_table,
+    material_cards,
+)
+from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 
 log = logging.getLogger(__name__)
 
@@ -56,12 +62,19 @@ NONCONVERGENCE = re.compile(r"increment size smaller than minimum|too many cutba
 #: it to +x = positive rotation about +y; left axial rotation turns the anterior side to the left
 #: (-x) = positive rotation about +z.
 LOAD_CASES: dict[str, tuple[int, int]] = {
-    "flexion": (0, -1), "extension": (0, 1), "lateral_left": (1, -1), "lateral_right": (1, 1),
-    "axial_left": (2, 1), "axial_right": (2, -1),
+    "flexion": (0, -1),
+    "extension": (0, 1),
+    "lateral_left": (1, -1),
+    "lateral_right": (1, 1),
+    "axial_left": (2, 1),
+    "axial_right": (2, -1),
 }
 #: motion planes: the two load cases whose one-side ROMs add up to the full range of motion
-PLANES = {"flexion_extension": ("flexion", "extension"), "lateral_bending": ("lateral_left", "lateral_right"),
-          "axial_rotation": ("axial_left", "axial_right")}
+PLANES = {
+    "flexion_extension": ("flexion", "extension"),
+    "lateral_bending": ("lateral_left", "lateral_right"),
+    "axial_rotation": ("axial_left", "axial_right"),
+}
 COLUMN = LEVELS + ("S1",)
 #: axial stiffness (N/mm) of each spring of an intermediate vertebra's arch truss: with ~30 springs per
 #: anchor the arch deflects ~0.01 mm under a 100 N ligament force, i.e. it is as good as rigid next to the
@@ -80,6 +93,7 @@ class RomError(RuntimeError):
 @dataclass
 class RomModel:
     """A ROM submodel: its FE model (0-based indices) and what the analysis needs to load and read it."""
+
     fe: FEModel
     vertebrae: list[str]  # cranial -> caudal; the last one ("S1" or a vertebra) is fixed
     endplate_nodes: dict[str, np.ndarray]  # vertebra -> its two endplate node layers (Kabsch)
@@ -111,6 +125,7 @@ class FacetContact:
     upper vertebra's anatomical frame.  Both angles are interpolated linearly over the column between the
     anchor levels given (the upper vertebra of a segment).  clearance_mm: the initial joint gap;
     stiffness_n_per_mm: the contact stiffness of a closed joint (cartilage)."""
+
     clearance_mm: float = 0.5
     stiffness_n_per_mm: float = 200.0
     transverse_deg: tuple[tuple[str, float], ...] = (("T1", 60.0), ("T10", 60.0), ("T12", 90.0), ("L5", 90.0))
@@ -136,17 +151,21 @@ class FacetContact:
         return n / np.linalg.norm(n)
 
     @classmethod
-    def from_config(cls, cfg: dict | None) -> "FacetContact | None":
+    def from_config(cls, cfg: dict | None) -> FacetContact | None:
         """From the config's ``rom.facets`` block (None or ``enabled: false`` -> no contact)."""
         if not cfg or not cfg.get("enabled", True):
             return None
-        return cls(float(cfg["clearance_mm"]), float(cfg["stiffness_n_per_mm"]),
-                   tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
-                   tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()))
+        return cls(
+            float(cfg["clearance_mm"]),
+            float(cfg["stiffness_n_per_mm"]),
+            tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
+            tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()),
+        )
 
 
-def facet_gaps(template: HexTemplate, points: np.ndarray, pairs: np.ndarray,
-               facets: FacetContact) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
+def facet_gaps(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
+) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
     """((clearance, direction, stiffness), elset name) of each facet pair (IAP tip of the upper vertebra,
     SAP tip of the lower), in the order of `pairs`; direction from the SAP towards the IAP."""
     owner = _arch_owner(template)
@@ -166,7 +185,7 @@ def column_levels(top: str, bottom: str) -> list[str]:
     """Vertebrae from ``top`` down to ``bottom`` (``S1`` allowed), cranial first."""
     if top not in LEVELS or bottom not in COLUMN or COLUMN.index(bottom) <= COLUMN.index(top):
         raise ValueError(f"ROM segment {top}..{bottom}: need a vertebra T1..L5 above a vertebra or S1")
-    return list(COLUMN[COLUMN.index(top):COLUMN.index(bottom) + 1])
+    return list(COLUMN[COLUMN.index(top) : COLUMN.index(bottom) + 1])
 
 
 def parse_unit(name: str) -> tuple[str, str]:
@@ -212,11 +231,19 @@ def _arch_owner(template: HexTemplate) -> dict[int, str]:
     return {int(n): v for v in LEVELS for n in _arch_nodes(template, v)}
 
 
-def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, bottom: str,
-                      materials: FEMaterials | None = None, hex_type: str = "C3D8",
-                      include_all: bool | None = None, heading: str = "",
-                      ligament_groups: tuple[str, ...] | None = None, annulus_hex_type: str | None = "C3D8R",
-                      facets: FacetContact | None = None) -> RomModel:
+def extract_rom_model(
+    template: HexTemplate,
+    points: np.ndarray,
+    top: str,
+    bottom: str,
+    materials: FEMaterials | None = None,
+    hex_type: str = "C3D8",
+    include_all: bool | None = None,
+    heading: str = "",
+    ligament_groups: tuple[str, ...] | None = None,
+    annulus_hex_type: str | None = "C3D8R",
+    facets: FacetContact | None = None,
+) -> RomModel:
     """The ROM submodel of vertebrae ``top``..``bottom`` (see the module docstring) with the model's
     coordinates ``points`` (N, 3) mm in template node order.
 
@@ -361,8 +388,9 @@ def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, botto
             # (flexion: 14 -> 43 iterations per increment, no convergence past 35 % of the load, discs
             # alone); without them, 10 per increment to the full load (docs/rom.md).
             ii, jj = np.triu_indices(len(a), 1)
-            pairs = np.concatenate([np.stack(np.meshgrid(a, wall, indexing="ij"), -1).reshape(-1, 2),
-                                    np.stack([a[ii], a[jj]], 1)])
+            pairs = np.concatenate(
+                [np.stack(np.meshgrid(a, wall, indexing="ij"), -1).reshape(-1, 2), np.stack([a[ii], a[jj]], 1)]
+            )
             arch_springs.append((v, pairs))
     if bottom == "S1":
         fixed = new_of[np.arange(n2)]
@@ -374,10 +402,16 @@ def extract_rom_model(template: HexTemplate, points: np.ndarray, top: str, botto
             elsets[f"ARCH_{v}"] = np.arange(first, first + len(p))
             sections.append(Section(elset=f"ARCH_{v}", spring_force_elongation=table))
             first += len(p)
-    fe = FEModel(nodes=pts, element_blocks=blocks, node_sets={}, element_sets=elsets,
-                 materials=material_cards(mats), sections=sections,
-                 heading=heading or f"spinecohort ROM model {top}-{bottom}",
-                 orientations=[o for o in orientations.values() if o.name in used_orient])
+    fe = FEModel(
+        nodes=pts,
+        element_blocks=blocks,
+        node_sets={},
+        element_sets=elsets,
+        materials=material_cards(mats),
+        sections=sections,
+        heading=heading or f"spinecohort ROM model {top}-{bottom}",
+        orientations=[o for o in orientations.values() if o.name in used_orient],
+    )
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(len(hexes)), source, lig_counts)
 
 
@@ -403,15 +437,25 @@ def _mean_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------------
 # decks
 
+
 def load_vector_nmm(model: RomModel, case: str, moment_nmm: float) -> np.ndarray:
     """Global moment vector (N.mm) of a load case, about the top vertebra's anatomical axis."""
     axis, sign = LOAD_CASES[case]
     return sign * moment_nmm * model.frames[model.top][:, axis]
 
 
-def rom_deck_text(model: RomModel, case: str, moment_nmm: float, nlgeom: bool = True,
-                  initial_increment: float = 0.1, min_increment: float = 1e-4, max_increment: float = 0.25,
-                  max_increments: int = 100, provenance: str = "", average_force_n: float | None = None) -> str:
+def rom_deck_text(
+    model: RomModel,
+    case: str,
+    moment_nmm: float,
+    nlgeom: bool = True,
+    initial_increment: float = 0.1,
+    min_increment: float = 1e-4,
+    max_increment: float = 0.25,
+    max_increments: int = 100,
+    provenance: str = "",
+    average_force_n: float | None = None,
+) -> str:
     """The complete ccx deck of one load case: model data, rigid bodies, fixation, one static step with
     the pure moment on the top's ROT NODE, node prints of every endplate node and the ROT NODE."""
     if case not in LOAD_CASES:
@@ -433,13 +477,15 @@ def rom_deck_text(model: RomModel, case: str, moment_nmm: float, nlgeom: bool = 
         raise RomError(f"the top vertebra {model.top} has no rigid body to load")
     # extra nodes right after the mesh: ccx allocates memory by the largest node id
     parts.append("*NODE, NSET=RBNODES\n" + "".join(extra))
-    from .abaqus import format_id_list
+    from spinecohort.fe.abaqus import format_id_list
 
     for v, ref, rot, nodes in rb:
         parts.append(f"*NSET, NSET=RB_{v}\n" + format_id_list(nodes + 1))
         parts.append(f"*RIGID BODY, NSET=RB_{v}, REF NODE={ref}, ROT NODE={rot}\n")
     parts.append("*NSET, NSET=FIXED\n" + format_id_list(np.unique(model.fixed_nodes) + 1))
-    parts.append("*NSET, NSET=EPNODES\n" + format_id_list(np.unique(np.concatenate(list(model.endplate_nodes.values()))) + 1))
+    parts.append(
+        "*NSET, NSET=EPNODES\n" + format_id_list(np.unique(np.concatenate(list(model.endplate_nodes.values()))) + 1)
+    )
     parts.append(f"*NSET, NSET=ROTTOP\n{rot_top}\n")
     parts.append("*BOUNDARY\nFIXED, 1, 3\n")
     m = load_vector_nmm(model, case, moment_nmm)
@@ -457,7 +503,9 @@ def rom_deck_text(model: RomModel, case: str, moment_nmm: float, nlgeom: bool = 
             # force.  Under a pure moment that average is ~0.3 N (soft tissue, few loaded nodes), so the
             # criterion asked for 0.002 N on rigid-body resultants and stalled the lumbar runs for dozens
             # of iterations per increment; a user-defined reference force fixes the scale (docs/rom.md).
-            parts.append(f"*CONTROLS, PARAMETERS=FIELD\n0.005, 0.01, 0.01, {average_force_n!r}, 0.02, 1e-5, 1e-3, 1e-8\n")
+            parts.append(
+                f"*CONTROLS, PARAMETERS=FIELD\n0.005, 0.01, 0.01, {average_force_n!r}, 0.02, 1e-5, 1e-3, 1e-8\n"
+            )
     parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in range(3)))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n*NODE PRINT, NSET=EPNODES\nU\n*END STEP\n")
     return "".join(parts)
@@ -465,6 +513,7 @@ def rom_deck_text(model: RomModel, case: str, moment_nmm: float, nlgeom: bool = 
 
 # ----------------------------------------------------------------------------------------------------------
 # kinematics
+
 
 def kabsch_rotations(ref_mm: np.ndarray, disp_mm: np.ndarray) -> np.ndarray:
     """Best-fit rotations (B, 3, 3) taking each reference point set (B, K, 3) to its displaced one
@@ -517,19 +566,22 @@ def segment_rotations_deg(model: RomModel, disp_of_node: dict[int, np.ndarray]) 
 # ----------------------------------------------------------------------------------------------------------
 # running
 
+
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
     """Refuse a model with an inverted (or too distorted) hex before the solver is called; returns the
     minimum scaled Jacobian."""
-    from .quality import scaled_jacobian
+    from spinecohort.mesh.quality import scaled_jacobian
 
     hexes = np.concatenate([c for t, c in model.fe.element_blocks.values() if t in SOLID_TYPES])
     sj = scaled_jacobian(model.fe.nodes, hexes)
     bad = int((sj <= min_scaled_jacobian).sum())
     if bad:
         worst = int(np.argmin(sj))
-        raise RomError(f"{bad} hex element(s) of the ROM model {model.top}-{model.vertebrae[-1]} have a scaled "
-                       f"Jacobian <= {min_scaled_jacobian} (min {sj.min():.3f} at element {worst + 1}): inverted "
-                       f"or degenerate; refusing to run the solver")
+        raise RomError(
+            f"{bad} hex element(s) of the ROM model {model.top}-{model.vertebrae[-1]} have a scaled "
+            f"Jacobian <= {min_scaled_jacobian} (min {sj.min():.3f} at element {worst + 1}): inverted "
+            f"or degenerate; refusing to run the solver"
+        )
     return float(sj.min())
 
 
@@ -545,10 +597,18 @@ class CaseResult:
     attempts: int = 1
 
 
-def run_case(model: RomModel, case: str, workdir: str | Path, moment_nmm: float = 7500.0, threads: int = 1,
-             timeout_s: float = 3600.0, job: str | None = None, **deck_kw) -> CaseResult:
+def run_case(
+    model: RomModel,
+    case: str,
+    workdir: str | Path,
+    moment_nmm: float = 7500.0,
+    threads: int = 1,
+    timeout_s: float = 3600.0,
+    job: str | None = None,
+    **deck_kw,
+) -> CaseResult:
     """Write the deck of one load case into workdir, run ccx on it (strict log check), read the ROM."""
-    from .calculix import CalculixError, CcxResult, parse_dat, run_ccx
+    from spinecohort.fe.calculix import CalculixError, CcxResult, parse_dat, run_ccx
 
     check_elements(model)  # an inverted hex never reaches the solver
     workdir = Path(workdir)
@@ -558,10 +618,13 @@ def run_case(model: RomModel, case: str, workdir: str | Path, moment_nmm: float 
     # Non-convergence (tension-only springs and fibres switching on, a soft unit at large rotation) is a
     # property of the load case, not a broken run: retry once with smaller increments, then keep the ROM
     # at the last converged load fraction, flagged, instead of losing the model's other load cases.
-    retry_kw = {**deck_kw, "initial_increment": min(0.02, deck_kw.get("initial_increment", 0.1)),
-                "max_increment": min(0.05, deck_kw.get("max_increment", 0.25)),
-                "min_increment": min(1e-6, deck_kw.get("min_increment", 1e-4)),
-                "max_increments": max(400, deck_kw.get("max_increments", 100))}
+    retry_kw = {
+        **deck_kw,
+        "initial_increment": min(0.02, deck_kw.get("initial_increment", 0.1)),
+        "max_increment": min(0.05, deck_kw.get("max_increment", 0.25)),
+        "min_increment": min(1e-6, deck_kw.get("min_increment", 1e-4)),
+        "max_increments": max(400, deck_kw.get("max_increments", 100)),
+    }
     seconds = peak = 0.0
     for attempt, kw in enumerate((deck_kw, retry_kw), start=1):
         deck.write_text(rom_deck_text(model, case, moment_nmm, **kw))
@@ -573,8 +636,15 @@ def run_case(model: RomModel, case: str, workdir: str | Path, moment_nmm: float 
                 raise
             log.warning("%s: ccx did not converge (attempt %d): %s", deck, attempt, str(exc).splitlines()[-1])
             dat = workdir / f"{job}.dat"
-            res = CcxResult(1, "", parse_dat(dat.read_text()) if dat.exists() else [], workdir, job,
-                            time.perf_counter() - t0, float("nan"))
+            res = CcxResult(
+                1,
+                "",
+                parse_dat(dat.read_text()) if dat.exists() else [],
+                workdir,
+                job,
+                time.perf_counter() - t0,
+                float("nan"),
+            )
             converged = False
         else:
             converged = True
@@ -593,8 +663,16 @@ def run_case(model: RomModel, case: str, workdir: str | Path, moment_nmm: float 
     axis, sign = LOAD_CASES[case]
     load_axis = model.frames[model.top][:, axis]
     curve = np.array([[b.time, sign * np.degrees(b.values[0] @ load_axis)] for b in rot_prints])
-    return CaseResult(case, segment_rotations_deg(model, disp), np.degrees(rot_prints[-1].values[0]), curve,
-                      seconds, peak, float(last.time), attempt)
+    return CaseResult(
+        case,
+        segment_rotations_deg(model, disp),
+        np.degrees(rot_prints[-1].values[0]),
+        curve,
+        seconds,
+        peak,
+        float(last.time),
+        attempt,
+    )
 
 
 def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: str) -> pd.DataFrame:
@@ -605,15 +683,28 @@ def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: s
     for r in results:
         axis, sign = LOAD_CASES[r.case]
         for (up, lo), comp in r.rotations_deg.items():
-            rows.append({"model": model_id, "mode": mode, "segment": f"{up}-{lo}", "load_case": r.case,
-                         "rom_deg": sign * comp[axis], "lateral_deg": comp[0], "anterior_deg": comp[1],
-                         "cranial_deg": comp[2], "load_fraction": r.load_fraction, "attempts": r.attempts,
-                         "solve_s": round(r.seconds, 2), "peak_rss_mb": round(r.peak_rss_mb, 1)})
+            rows.append(
+                {
+                    "model": model_id,
+                    "mode": mode,
+                    "segment": f"{up}-{lo}",
+                    "load_case": r.case,
+                    "rom_deg": sign * comp[axis],
+                    "lateral_deg": comp[0],
+                    "anterior_deg": comp[1],
+                    "cranial_deg": comp[2],
+                    "load_fraction": r.load_fraction,
+                    "attempts": r.attempts,
+                    "solve_s": round(r.seconds, 2),
+                    "peak_rss_mb": round(r.peak_rss_mb, 1),
+                }
+            )
     return pd.DataFrame(rows)
 
 
 # ----------------------------------------------------------------------------------------------------------
 # one model: every extraction mode and load case
+
 
 def analyses(cfg_rom: dict) -> list[tuple[str, str, str]]:
     """(mode, top, bottom) of every ROM model the config asks for: 'lumbar' and one 'unit' per FU."""
@@ -628,43 +719,103 @@ def analyses(cfg_rom: dict) -> list[tuple[str, str, str]]:
     return out
 
 
-def solve_model(template: HexTemplate, points: np.ndarray, cfg_rom: dict, workdir: str | Path,
-                model_id: str, materials: FEMaterials | None = None) -> pd.DataFrame:
+def solve_model(
+    template: HexTemplate,
+    points: np.ndarray,
+    cfg_rom: dict,
+    workdir: str | Path,
+    model_id: str,
+    materials: FEMaterials | None = None,
+) -> pd.DataFrame:
     """ROM table of one model for every configured extraction and load case (plus extension without the
     ALL if ``all_effect``).  Decks, ccx logs and .dat files stay in ``workdir/<mode>_<top><bottom>/``.
     Load cases run in parallel, ``cfg_rom['threads']`` single-threaded ccx processes at a time."""
     from concurrent.futures import ThreadPoolExecutor
 
-
     mats = DEFAULT_MATERIALS if materials is None else materials
-    deck_kw = dict(nlgeom=cfg_rom["nlgeom"], initial_increment=cfg_rom["initial_increment"],
-                   min_increment=cfg_rom["min_increment"], max_increment=cfg_rom["max_increment"],
-                   max_increments=cfg_rom["max_increments"], average_force_n=cfg_rom["reference_force_n"])
+    deck_kw = dict(
+        nlgeom=cfg_rom["nlgeom"],
+        initial_increment=cfg_rom["initial_increment"],
+        min_increment=cfg_rom["min_increment"],
+        max_increment=cfg_rom["max_increment"],
+        max_increments=cfg_rom["max_increments"],
+        average_force_n=cfg_rom["reference_force_n"],
+    )
     jobs = []
     for mode, top, bottom in analyses(cfg_rom):
         sub = Path(workdir) / f"{mode}_{top}{bottom}"
-        kw = dict(materials=mats, hex_type=cfg_rom["hex_type"], annulus_hex_type=cfg_rom["annulus_hex_type"],
-                  facets=FacetContact.from_config(cfg_rom["facets"]))
-        variants = [("intact", extract_rom_model(template, points, top, bottom,
-                                                  heading=f"{model_id} ROM {mode} {top}-{bottom}", **kw))]
+        kw = dict(
+            materials=mats,
+            hex_type=cfg_rom["hex_type"],
+            annulus_hex_type=cfg_rom["annulus_hex_type"],
+            facets=FacetContact.from_config(cfg_rom["facets"]),
+        )
+        variants = [
+            (
+                "intact",
+                extract_rom_model(template, points, top, bottom, heading=f"{model_id} ROM {mode} {top}-{bottom}", **kw),
+            )
+        ]
         if cfg_rom["all_effect"] and "extension" in cfg_rom["load_cases"] and mats.include_all:
-            variants.append(("no_ALL", extract_rom_model(template, points, top, bottom, include_all=False,
-                                                         heading=f"{model_id} ROM {mode} {top}-{bottom} no ALL",
-                                                         **kw)))
+            variants.append(
+                (
+                    "no_ALL",
+                    extract_rom_model(
+                        template,
+                        points,
+                        top,
+                        bottom,
+                        include_all=False,
+                        heading=f"{model_id} ROM {mode} {top}-{bottom} no ALL",
+                        **kw,
+                    ),
+                )
+            )
         for variant, model in variants:
             msj = check_elements(model)
-            log.info("%s %s %s-%s (%s): %d nodes, %d elements, ligaments %s, min scaled Jacobian %.3f", model_id,
-                     mode, top, bottom, variant, len(model.fe.nodes), model.fe.n_elements, model.ligament_groups, msj)
+            log.info(
+                "%s %s %s-%s (%s): %d nodes, %d elements, ligaments %s, min scaled Jacobian %.3f",
+                model_id,
+                mode,
+                top,
+                bottom,
+                variant,
+                len(model.fe.nodes),
+                model.fe.n_elements,
+                model.ligament_groups,
+                msj,
+            )
             cases = cfg_rom["load_cases"] if variant == "intact" else ["extension"]
             for case in cases:
-                jobs.append((mode, variant, model, case, sub, f"rom_{case}" + ("" if variant == "intact" else "_noALL")))
+                jobs.append(
+                    (mode, variant, model, case, sub, f"rom_{case}" + ("" if variant == "intact" else "_noALL"))
+                )
 
     def run(job):
         mode, variant, model, case, sub, name = job
-        r = run_case(model, case, sub, moment_nmm=cfg_rom["moment_nmm"], threads=1,
-                     timeout_s=cfg_rom["timeout_s"], job=name, **deck_kw)
-        log.info("%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments", model_id, mode,
-                 model.top, model.vertebrae[-1], case, variant, r.seconds, r.peak_rss_mb, r.curve[-1, 1], len(r.curve))
+        r = run_case(
+            model,
+            case,
+            sub,
+            moment_nmm=cfg_rom["moment_nmm"],
+            threads=1,
+            timeout_s=cfg_rom["timeout_s"],
+            job=name,
+            **deck_kw,
+        )
+        log.info(
+            "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments",
+            model_id,
+            mode,
+            model.top,
+            model.vertebrae[-1],
+            case,
+            variant,
+            r.seconds,
+            r.peak_rss_mb,
+            r.curve[-1, 1],
+            len(r.curve),
+        )
         table = rom_table(model, [r], model_id, mode)
         table.insert(2, "variant", variant)
         table.insert(3, "unit", f"{model.top}-{model.vertebrae[-1]}")
@@ -677,6 +828,7 @@ def solve_model(template: HexTemplate, points: np.ndarray, cfg_rom: dict, workdi
 
 # ----------------------------------------------------------------------------------------------------------
 # comparison with in-vitro data
+
 
 def model_value_deg(table: pd.DataFrame, segment: str, motion: str, side: str, mode: str) -> float:
     """Our ROM (deg) in a reference's convention: one load case, or a plane's full range (sum of both
@@ -696,8 +848,9 @@ def model_value_deg(table: pd.DataFrame, segment: str, motion: str, side: str, m
     return float(vals[0])
 
 
-def validate(table: pd.DataFrame, references: list[dict], moment_nmm: float,
-             acceptance_sd: float = 2.0) -> pd.DataFrame:
+def validate(
+    table: pd.DataFrame, references: list[dict], moment_nmm: float, acceptance_sd: float = 2.0
+) -> pd.DataFrame:
     """One row per reference and extraction mode that has its segment: our value, the accepted interval
     (mean +- acceptance_sd SD, or the range), in_range, and the distance from the mean/median (or the
     range's centre).  References at another moment are listed with in_range empty (not judged)."""
@@ -715,13 +868,26 @@ def validate(table: pd.DataFrame, references: list[dict], moment_nmm: float,
                 low, high = ref["low"], ref["high"]
                 centre = ref.get("value", 0.5 * (low + high))
             same_moment = abs(ref["moment_nmm"] - moment_nmm) < 1e-6
-            rows.append({"segment": ref["segment"], "motion": ref["motion"], "side": ref["side"], "mode": mode,
-                         "model_deg": round(ours, 3), "ref_statistic": ref["statistic"], "ref_value": ref.get("value"),
-                         "ref_sd": ref.get("sd"), "ref_low": ref.get("low"), "ref_high": ref.get("high"),
-                         "accept_low": round(low, 3), "accept_high": round(high, 3),
-                         "in_range": (bool(low <= ours <= high) if same_moment and np.isfinite(ours) else None),
-                         "distance_deg": round(ours - centre, 3), "ref_moment_nmm": ref["moment_nmm"],
-                         "source": ref["source"]})
+            rows.append(
+                {
+                    "segment": ref["segment"],
+                    "motion": ref["motion"],
+                    "side": ref["side"],
+                    "mode": mode,
+                    "model_deg": round(ours, 3),
+                    "ref_statistic": ref["statistic"],
+                    "ref_value": ref.get("value"),
+                    "ref_sd": ref.get("sd"),
+                    "ref_low": ref.get("low"),
+                    "ref_high": ref.get("high"),
+                    "accept_low": round(low, 3),
+                    "accept_high": round(high, 3),
+                    "in_range": (bool(low <= ours <= high) if same_moment and np.isfinite(ours) else None),
+                    "distance_deg": round(ours - centre, 3),
+                    "ref_moment_nmm": ref["moment_nmm"],
+                    "source": ref["source"],
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -744,20 +910,35 @@ def validation_figure(validation: pd.DataFrame, path: str | Path, title: str = "
     import matplotlib.pyplot as plt
 
     modes = [m for m in ("lumbar", "unit") if (validation["mode"] == m).any()]
-    fig, axes = plt.subplots(len(modes), 1, figsize=(max(6, 0.6 * len(validation) + 3), 3.6 * len(modes)),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(modes), 1, figsize=(max(6, 0.6 * len(validation) + 3), 3.6 * len(modes)), squeeze=False
+    )
     for ax, mode in zip(axes[:, 0], modes):
         v = validation[validation["mode"] == mode].reset_index(drop=True)
         x = np.arange(len(v))
         colors = ["tab:green" if r is True else ("tab:red" if r is False else "tab:gray") for r in v["in_range"]]
         ax.bar(x, v["model_deg"], color=colors, alpha=0.7, label="model (green: in range, red: out)")
-        centre = np.where(v["ref_statistic"] == "mean_sd", v["ref_value"], 0.5 * (v["ref_low"].astype(float) + v["ref_high"].astype(float)))
+        centre = np.where(
+            v["ref_statistic"] == "mean_sd",
+            v["ref_value"],
+            0.5 * (v["ref_low"].astype(float) + v["ref_high"].astype(float)),
+        )
         lo = np.where(v["ref_statistic"] == "mean_sd", v["ref_value"] - v["ref_sd"], v["ref_low"].astype(float))
         hi = np.where(v["ref_statistic"] == "mean_sd", v["ref_value"] + v["ref_sd"], v["ref_high"].astype(float))
-        ax.errorbar(x + 0.25, centre, yerr=[centre - lo, hi - centre], fmt="o", color="k", capsize=4,
-                    label="in vitro: mean +- SD / range")
-        ax.set_xticks(x, [f"{s}\n{m.replace('_', ' ')}\n({sd})" for s, m, sd in zip(v["segment"], v["motion"], v["side"])],
-                      fontsize=7)
+        ax.errorbar(
+            x + 0.25,
+            centre,
+            yerr=[centre - lo, hi - centre],
+            fmt="o",
+            color="k",
+            capsize=4,
+            label="in vitro: mean +- SD / range",
+        )
+        ax.set_xticks(
+            x,
+            [f"{s}\n{m.replace('_', ' ')}\n({sd})" for s, m, sd in zip(v["segment"], v["motion"], v["side"])],
+            fontsize=7,
+        )
         ax.set_ylabel("ROM (deg)")
         ax.set_title(f"{title} {'lumbar model (pelvis..T10)' if mode == 'lumbar' else 'functional units'}".strip())
         ax.legend(fontsize=7, loc="upper left")  # the right end holds the tallest bars (axial rotation)

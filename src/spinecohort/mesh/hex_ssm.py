@@ -15,7 +15,7 @@ Surface elements (posterior elements, sacrum, pelvis, femoral heads) are SSM ver
 triangulated SSM's own, exactly, in both methods.
 
 Models are ``hex_mean + DF . b`` followed, where the linear model collapses a disc (extreme weights), by
-the disc-contact distraction of :mod:`spinecohort.contact` (``HexSSM.contact``; applied by
+the disc-contact distraction of :mod:`spinecohort.mesh.contact` (``HexSSM.contact``; applied by
 ``shards.sample_points`` and ``models.hex_points_checked``, not by ``HexSSM.sample``, which stays the
 linear formula).
 """
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .contact import ContactMap, contact_map
-from .hex_template import HexTemplate, disc_runs
-from .landmarks import DISCS, Landmarks
-from .pca import SSM
+from spinecohort.cohort.landmarks import DISCS, Landmarks
+from spinecohort.mesh.contact import ContactMap, contact_map
+from spinecohort.mesh.template import HexTemplate, disc_runs
+from spinecohort.ssm.model import SSM
 
 
 @dataclass
@@ -50,11 +50,18 @@ class HexSSM:
 
     def save(self, path: str | Path, **extra) -> None:
         contact = self.contact.arrays() if self.contact is not None else {}
-        np.savez(path, mean=self.mean, fields=self.fields, eigenvalues=self.eigenvalues,
-                 method=np.array(self.method), **contact, **extra)
+        np.savez(
+            path,
+            mean=self.mean,
+            fields=self.fields,
+            eigenvalues=self.eigenvalues,
+            method=np.array(self.method),
+            **contact,
+            **extra,
+        )
 
     @classmethod
-    def load(cls, path: str | Path) -> "HexSSM":
+    def load(cls, path: str | Path) -> HexSSM:
         with np.load(path) as z:
             return cls(z["mean"], z["fields"], z["eigenvalues"], str(z["method"]), ContactMap.from_arrays(z))
 
@@ -76,8 +83,15 @@ def _affine_plus_residual(src_pts: np.ndarray, src_fields: np.ndarray, query: np
     return out + np.einsum("qk,mqkc->mqc", w, resid[:, idx])
 
 
-def transfer_fields(template: HexTemplate, hex_mean: np.ndarray, tri_ssm: SSM, landmarks: Landmarks,
-                    n_modes: int, method: str = "smooth", min_disc_height_mm: float | None = None) -> HexSSM:
+def transfer_fields(
+    template: HexTemplate,
+    hex_mean: np.ndarray,
+    tri_ssm: SSM,
+    landmarks: Landmarks,
+    n_modes: int,
+    method: str = "smooth",
+    min_disc_height_mm: float | None = None,
+) -> HexSSM:
     """Build the hex SSM on the morphed template nodes ``hex_mean`` (n_nodes, 3).
 
     ``min_disc_height_mm``: attach the disc-contact map that keeps every disc at least this high (mm);
@@ -99,13 +113,12 @@ def transfer_fields(template: HexTemplate, hex_mean: np.ndarray, tri_ssm: SSM, l
                 continue
             # the S1 plate layer lies on the sacral plate: its own vertices carry its motion
             verts = landmarks.body[layer["level"]] if layer["kind"] == "body" else landmarks.endplate_sup["S1"]
-            hf[:, L] = _affine_plus_residual(tri_ssm.mean[verts], df_tri[:, verts], hex_pts[L * n2:(L + 1) * n2])
+            hf[:, L] = _affine_plus_residual(tri_ssm.mean[verts], df_tri[:, verts], hex_pts[L * n2 : (L + 1) * n2])
         _interpolate_disc_fields(hf, hex_pts.reshape(len(layers), n2, 3), layers)
         fields[:, :n_hex] = hf.reshape(n_modes, -1, 3)
     else:
         raise ValueError(f"unknown transfer method '{method}' (nearest | smooth)")
-    contact = (None if min_disc_height_mm is None
-               else contact_map(landmarks, template, hex_mean, min_disc_height_mm))
+    contact = None if min_disc_height_mm is None else contact_map(landmarks, template, hex_mean, min_disc_height_mm)
     return HexSSM(hex_mean.copy(), fields, tri_ssm.eigenvalues[:n_modes].copy(), method, contact)
 
 
@@ -128,15 +141,16 @@ def contact_offsets(hex_ssm: HexSSM, weights: np.ndarray) -> tuple[np.ndarray, n
     return hex_ssm.contact.level_offsets_of_weights(hex_ssm.mean, hex_ssm.fields, w)
 
 
-def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, chunk: int = 500,
-                       contact: bool = False) -> dict:
+def inverted_over_grid(
+    hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, chunk: int = 500, contact: bool = False
+) -> dict:
     """Inverted-element statistics of every model of a weight grid (numba fused sample + check).
 
     Returns the fraction of inverted elements over all models and elements, the fraction of models with at
     least one, their count and the lowest scaled Jacobian met.  ``contact=True``: of the models after the
     disc-contact distraction (``hex_ssm.contact``), and how many models it moved.
     """
-    from .quality import morph_scaled_jacobian_nb, scaled_jacobian_batch_nb
+    from spinecohort.mesh.quality import morph_scaled_jacobian_nb, scaled_jacobian_batch_nb
 
     bad = models_bad = distracted = 0
     worst = np.inf
@@ -145,23 +159,28 @@ def inverted_over_grid(hex_ssm: HexSSM, hexes: np.ndarray, weights: np.ndarray, 
     mean = np.ascontiguousarray(hex_ssm.mean[:n])
     fields = np.ascontiguousarray(hex_ssm.fields[:m, :n])
     for i in range(0, len(weights), chunk):
-        wb = np.ascontiguousarray(weights[i:i + chunk], dtype=np.float64)
+        wb = np.ascontiguousarray(weights[i : i + chunk], dtype=np.float64)
         sj = morph_scaled_jacobian_nb(mean, fields, wb, np.ascontiguousarray(hexes))
         if contact and hex_ssm.contact is not None:
             _, off = contact_offsets(hex_ssm, wb)
             moved = np.flatnonzero(np.abs(off).max(axis=(1, 2)) > 0)
             distracted += len(moved)
             if len(moved):
-                pts = (mean + np.tensordot(wb[moved], fields, axes=(1, 0))
-                       + hex_ssm.contact.hex_offsets(off[moved])[:, :n])
+                pts = (
+                    mean + np.tensordot(wb[moved], fields, axes=(1, 0)) + hex_ssm.contact.hex_offsets(off[moved])[:, :n]
+                )
                 sj[moved] = scaled_jacobian_batch_nb(np.ascontiguousarray(pts), np.ascontiguousarray(hexes))
         inv = sj <= 0
         bad += int(inv.sum())
         models_bad += int(inv.any(1).sum())
         worst = min(worst, float(sj.min()))
     total = len(weights) * len(hexes)
-    out = {"inverted_element_fraction": bad / total, "models_with_inverted": models_bad,
-           "models_with_inverted_fraction": models_bad / len(weights), "min_scaled_jacobian": worst}
+    out = {
+        "inverted_element_fraction": bad / total,
+        "models_with_inverted": models_bad,
+        "models_with_inverted_fraction": models_bad / len(weights),
+        "min_scaled_jacobian": worst,
+    }
     if contact:
         out["models_distracted"] = distracted
     return out

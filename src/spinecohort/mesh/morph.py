@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .hex_template import HexTemplate, OGrid, core_boundary_ids, fill_discs
-from .landmarks import LEVELS, Landmarks
-from .quality import scaled_jacobian
-from .registration import nonrigid_register, surface_distance
+from spinecohort.cohort.landmarks import LEVELS, Landmarks
+from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.registration import nonrigid_register, surface_distance
+from spinecohort.mesh.template import HexTemplate, OGrid, core_boundary_ids, fill_discs
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +68,10 @@ def _closest_points(points: np.ndarray, target: np.ndarray, faces: np.ndarray) -
     vp.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(target), deep=True))
     poly.SetPoints(vp)
     cells = vtk.vtkCellArray()
-    cells.SetData(numpy_support.numpy_to_vtkIdTypeArray(np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64), deep=True),
-                  numpy_support.numpy_to_vtkIdTypeArray(faces.astype(np.int64).ravel(), deep=True))
+    cells.SetData(
+        numpy_support.numpy_to_vtkIdTypeArray(np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64), deep=True),
+        numpy_support.numpy_to_vtkIdTypeArray(faces.astype(np.int64).ravel(), deep=True),
+    )
     poly.SetPolys(cells)
     loc = vtk.vtkStaticCellLocator()
     loc.SetDataSet(poly)
@@ -98,8 +100,11 @@ def ray_weights(grid: OGrid, core_cells: int) -> tuple[np.ndarray, np.ndarray]:
     return outer_of, frac
 
 
-def _project(points: np.ndarray, groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-             spread: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def _project(
+    points: np.ndarray,
+    groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    spread: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Snap each group of surface nodes onto its own target surface (endplate nodes onto the endplate
     patch, wall nodes onto the wall).  ``spread`` = (node ids, their outer node, weight): interior ring nodes
     take their ray's outer-node correction times their radial fraction, so thin shell rings move with the
@@ -134,8 +139,11 @@ def _projection_groups(shape, grid, core_cells, name, landmarks, mean_points, me
     outer_of, frac = ray_weights(grid, core_cells)
     inner = np.flatnonzero((outer_of >= 0) & (frac < 1.0))
     layer_ids = np.arange(nl)
-    spread = ((layer_ids[:, None] * n2 + inner[None]).ravel(), (layer_ids[:, None] * n2 + outer_of[inner][None]).ravel(),
-              np.tile(frac[inner], len(layer_ids)))
+    spread = (
+        (layer_ids[:, None] * n2 + inner[None]).ravel(),
+        (layer_ids[:, None] * n2 + outer_of[inner][None]).ravel(),
+        np.tile(frac[inner], len(layer_ids)),
+    )
     return groups, spread
 
 
@@ -144,8 +152,9 @@ def _block_hexes(grid: OGrid, n_layers: int) -> np.ndarray:
     n2 = len(grid.nodes)
     if n_layers < 2:
         return np.zeros((0, 8), dtype=np.int64)
-    return np.concatenate([np.concatenate([k * n2 + grid.quads, (k + 1) * n2 + grid.quads], 1)
-                           for k in range(n_layers - 1)])
+    return np.concatenate(
+        [np.concatenate([k * n2 + grid.quads, (k + 1) * n2 + grid.quads], 1) for k in range(n_layers - 1)]
+    )
 
 
 def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParameters, start_distance: float):
@@ -153,7 +162,7 @@ def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParamet
     every element of the block valid; kernel width halves and the Nystrom rank grows per layer, and a
     rejected layer is retried narrower from the last accepted state.
 
-    The loop lives here rather than in :func:`spinecohort.registration.multilayer_register` because the
+    The loop lives here rather than in :func:`spinecohort.mesh.registration.multilayer_register` because the
     acceptance test needs the block's hexahedra.
     """
     current, best = flat, start_distance
@@ -162,10 +171,22 @@ def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParamet
     for layer in range(params.max_layers):
         if best < params.bound_mm:
             break
-        res = nonrigid_register(current[surf_ids], target, faces, lam=params.lam, beta=beta, gamma=params.gamma,
-                                K=k, w=params.w, max_iter=params.max_iter, tol=params.tol,
-                                downsample_radius=params.downsample_radius_mm, kd_sigma=params.kd_sigma,
-                                kd_scale=params.kd_scale, kd_radius=params.kd_radius)
+        res = nonrigid_register(
+            current[surf_ids],
+            target,
+            faces,
+            lam=params.lam,
+            beta=beta,
+            gamma=params.gamma,
+            K=k,
+            w=params.w,
+            max_iter=params.max_iter,
+            tol=params.tol,
+            downsample_radius=params.downsample_radius_mm,
+            kd_sigma=params.kd_sigma,
+            kd_scale=params.kd_scale,
+            kd_radius=params.kd_radius,
+        )
         candidate = res.transform(current)
         dist = float(surface_distance(candidate[surf_ids], target, faces).mean())
         # valid = no element below the quality floor (scaled Jacobian), not merely non-inverted
@@ -179,8 +200,14 @@ def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParamet
     return current, history
 
 
-def morph_template(template: HexTemplate, mean_points: np.ndarray, mean_faces: np.ndarray, landmarks: Landmarks,
-                   params: MorphParameters = MorphParameters(), progress=None) -> tuple[np.ndarray, pd.DataFrame]:
+def morph_template(
+    template: HexTemplate,
+    mean_points: np.ndarray,
+    mean_faces: np.ndarray,
+    landmarks: Landmarks,
+    params: MorphParameters = MorphParameters(),
+    progress=None,
+) -> tuple[np.ndarray, pd.DataFrame]:
     """Morphed node coordinates (n_nodes, 3) mm and a per-part report (distances in mm, iterations)."""
     grid = template.grid
     n2 = len(grid.nodes)
@@ -188,8 +215,10 @@ def morph_template(template: HexTemplate, mean_points: np.ndarray, mean_faces: n
     nodes = template.nodes.copy()
     hex_layers = nodes[: template.n_hex_nodes].reshape(len(layers), n2, 3)
     rows = []
-    parts = [(lv, [i for i, ly in enumerate(layers) if ly["kind"] == "body" and ly["level"] == lv],
-              landmarks.body[lv]) for lv in LEVELS]
+    parts = [
+        (lv, [i for i, ly in enumerate(layers) if ly["kind"] == "body" and ly["level"] == lv], landmarks.body[lv])
+        for lv in LEVELS
+    ]
     parts.append(("S1", [0], landmarks.endplate_sup["S1"]))
     for k, (name, layer_ids, target_ids) in enumerate(parts):
         block = hex_layers[layer_ids]  # (nl, n2, 3)
@@ -202,23 +231,47 @@ def morph_template(template: HexTemplate, mean_points: np.ndarray, mean_faces: n
         faces = _faces_of(mean_faces, target_ids)
         t0 = time.perf_counter()
         before = float(surface_distance(flat[surf_ids], target, faces).mean())
-        moved, history = _multilayer_valid(flat, surf_ids, _block_hexes(grid, block.shape[0]), target, faces,
-                                           params, before)
+        moved, history = _multilayer_valid(
+            flat, surf_ids, _block_hexes(grid, block.shape[0]), target, faces, params, before
+        )
         after_reg = history[-1]["mean_distance"] if history else before
         if params.project:
-            groups, spread = _projection_groups(block.shape, grid, template.resolution.core_cells, name, landmarks,
-                                                mean_points, mean_faces,
-                                                target, faces)
+            groups, spread = _projection_groups(
+                block.shape,
+                grid,
+                template.resolution.core_cells,
+                name,
+                landmarks,
+                mean_points,
+                mean_faces,
+                target,
+                faces,
+            )
             moved = _project(moved, groups, spread)
         dist = surface_distance(moved[surf_ids], target, faces)
         hex_layers[layer_ids] = moved.reshape(block.shape)
-        rows.append(dict(part=name, surface_nodes=len(surf_ids), target_vertices=len(target_ids),
-                         distance_before_mm=before, distance_registered_mm=after_reg,
-                         distance_final_mean_mm=float(dist.mean()), distance_final_max_mm=float(dist.max()),
-                         layers=len(history), iterations=sum(h["iterations"] for h in history),
-                         seconds=time.perf_counter() - t0))
-        log.info("%s: surface distance %.3f -> %.4f mm (BCPD, %d layers accepted) -> %.2e mm", name, before,
-                 after_reg, len(history), dist.mean())
+        rows.append(
+            dict(
+                part=name,
+                surface_nodes=len(surf_ids),
+                target_vertices=len(target_ids),
+                distance_before_mm=before,
+                distance_registered_mm=after_reg,
+                distance_final_mean_mm=float(dist.mean()),
+                distance_final_max_mm=float(dist.max()),
+                layers=len(history),
+                iterations=sum(h["iterations"] for h in history),
+                seconds=time.perf_counter() - t0,
+            )
+        )
+        log.info(
+            "%s: surface distance %.3f -> %.4f mm (BCPD, %d layers accepted) -> %.2e mm",
+            name,
+            before,
+            after_reg,
+            len(history),
+            dist.mean(),
+        )
         if progress is not None:
             progress(k + 1, len(parts))
     fill_discs(hex_layers, layers, template.resolution.cep_thickness_mm)

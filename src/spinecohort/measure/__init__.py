@@ -1,0 +1,1 @@
+"""Spinopelvic measurement: parameters from landmark sets, the GAP score, parameter tables."""

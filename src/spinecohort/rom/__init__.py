@@ -1,0 +1,1 @@
+"""FE validation: segmental range of motion in CalculiX against in-vitro data."""

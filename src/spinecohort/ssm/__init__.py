@@ -1,0 +1,1 @@
+"""Stage 2 — the statistical shape model: Procrustes alignment, PCA, compactness/generalization/specificity."""
