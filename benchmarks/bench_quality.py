@@ -16,8 +16,8 @@ import numpy as np
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from spinecohort import quality as q
-from spinecohort import repair as r
+from spinecohort.mesh import quality as q
+from spinecohort.mesh import repair as r
 
 
 def grid(n):

@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from spinecohort import registration as reg
 from spinecohort.cohort.surfaces import superellipsoid
+from spinecohort.mesh import registration as reg
 
 
 def body(n_points):

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from spinecohort import store as S
 from spinecohort.cohort.synthetic import generate_cohort
 from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.procrustes import procrustes_align
+from spinecohort.store import zarr_store as S
 
 warnings.filterwarnings("ignore", message="Numcodecs codecs are not in the Zarr")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spinecohort import gap
+from spinecohort.measure import gap_score as gap
 
 EPS = 0.01  # deg / percent either side of an edge
 

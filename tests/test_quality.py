@@ -5,7 +5,7 @@ import pytest
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from spinecohort import quality as q
+from spinecohort.mesh import quality as q
 
 
 def structured_grid(n: int, h: float = 1.0) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort import registration as reg
 from spinecohort.cohort.surfaces import superellipsoid
+from spinecohort.mesh import registration as reg
 
 
 def _vertebral_body(n_theta, n_rings, semi_axes=(20.0, 15.0, 12.0)):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from spinecohort import quality as q
-from spinecohort import repair as r
+from spinecohort.mesh import quality as q
+from spinecohort.mesh import repair as r
 
 N = 10  # elements per side
 M = N + 1  # nodes per side

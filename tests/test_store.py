@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import zarr
 
-from spinecohort import store as S
 from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.procrustes import procrustes_align
+from spinecohort.store import zarr_store as S
 
 # Numcodecs filters are outside the v3 core spec; zarr says so on every open of the store.
 pytestmark = pytest.mark.filterwarnings("ignore:Numcodecs codecs are not in the Zarr")

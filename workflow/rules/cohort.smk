@@ -11,7 +11,7 @@ if config["cohort"]["source"] == "synthetic":
         log:
             f"{LOGS}/synthetic_cohort.log",
         benchmark:
-            f"{BENCH}/synthetic_cohort.tsv"
+            L.benchmark("synthetic_cohort")
         conda:
             "../../environment.yml"
         threads: 1
@@ -27,11 +27,11 @@ rule validate_cohort:
         sheet=COHORT["sheet"],
         landmarks=COHORT["landmarks"],
     output:
-        f"{R}/cohort/cohort.npz",
+        L.cohort,
     log:
         f"{LOGS}/validate_cohort.log",
     benchmark:
-        f"{BENCH}/validate_cohort.tsv"
+        L.benchmark("validate_cohort")
     conda:
         "../../environment.yml"
     threads: 1

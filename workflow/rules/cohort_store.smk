@@ -1,5 +1,5 @@
 # Stage 5: the virtual cohort: the Zarr store, one sample/check/repair job and one measure job per shard.
-# (STORE and SHARDS come from common.smk: the Descriptive_List rule gathers the shards too.) The store
+# (L and SHARDS come from common.smk: the Descriptive_List rule gathers the shards too.) The store
 # itself is a directory written shard by shard; its .initialized marker is what the rules exchange.
 
 
@@ -9,14 +9,14 @@ wildcard_constraints:
 
 rule init_store:
     input:
-        ssm=f"{R}/ssm/ssm.npz",
-        hex_ssm=f"{R}/template/hex_ssm.npz",
+        ssm=L.ssm,
+        hex_ssm=L.hex_ssm,
     output:
-        f"{STORE}/.initialized",
+        L.store_initialized,
     log:
         f"{LOGS}/init_store.log",
     benchmark:
-        f"{BENCH}/init_store.tsv"
+        L.benchmark("init_store")
     conda:
         "../../environment.yml"
     threads: 1
@@ -31,17 +31,17 @@ rule init_store:
 # ever holds the coordinates the FE models use, and a shard is either complete or absent.
 rule sample_shard:
     input:
-        store=f"{STORE}/.initialized",
-        ssm=f"{R}/ssm/ssm.npz",
-        hex_ssm=f"{R}/template/hex_ssm.npz",
-        template=f"{R}/template/template.npz",
+        store=L.store_initialized,
+        ssm=L.ssm,
+        hex_ssm=L.hex_ssm,
+        template=L.template,
     output:
-        quality=f"{R}/shards/{{shard}}.quality.csv",
-        record=f"{R}/shards/{{shard}}.sample.json",
+        quality=L.shard_file("{shard}", "quality.csv"),
+        record=L.shard_file("{shard}", "sample.json"),
     log:
         f"{LOGS}/sample_shard/{{shard}}.log",
     benchmark:
-        f"{BENCH}/sample_shard/{{shard}}.tsv"
+        L.benchmark("sample_shard", "{shard}")
     conda:
         "../../environment.yml"
     threads: 1
@@ -54,17 +54,17 @@ rule sample_shard:
 
 rule measure_shard:
     input:
-        store=f"{STORE}/.initialized",
-        record=f"{R}/shards/{{shard}}.sample.json",
-        cohort=f"{R}/cohort/cohort.npz",
-        template=f"{R}/template/template.npz",
+        store=L.store_initialized,
+        record=L.shard_file("{shard}", "sample.json"),
+        cohort=L.cohort,
+        template=L.template,
     output:
-        params=f"{R}/shards/{{shard}}.params.csv",
-        tri_vs_hex=f"{R}/shards/{{shard}}.tri_vs_hex.csv",
+        params=L.shard_file("{shard}", "params.csv"),
+        tri_vs_hex=L.shard_file("{shard}", "tri_vs_hex.csv"),
     log:
         f"{LOGS}/measure_shard/{{shard}}.log",
     benchmark:
-        f"{BENCH}/measure_shard/{{shard}}.tsv"
+        L.benchmark("measure_shard", "{shard}")
     conda:
         "../../environment.yml"
     threads: 1
@@ -79,14 +79,14 @@ rule measure_shard:
 # exactly those (docs/store.md). Rerun it on demand with `snakemake --forcerun check_store`.
 rule check_store:
     input:
-        store=f"{STORE}/.initialized",
-        records=expand(f"{R}/shards/{{shard}}.sample.json", shard=SHARDS),
+        store=L.store_initialized,
+        records=expand(L.shard_file("{shard}", "sample.json"), shard=SHARDS),
     output:
-        f"{R}/store_check.csv",
+        L.store_check,
     log:
         f"{LOGS}/check_store.log",
     benchmark:
-        f"{BENCH}/check_store.tsv"
+        L.benchmark("check_store")
     conda:
         "../../environment.yml"
     threads: 1

@@ -2,6 +2,7 @@
 from pathlib import Path
 
 from spinecohort.config import ConfigError, cohort_files, validate_config
+from spinecohort.layout import Layout
 from spinecohort.store.zarr_store import n_models, n_shards
 
 try:
@@ -11,11 +12,10 @@ try:
 except ConfigError as exc:
     raise WorkflowError(str(exc)) from None
 
-R = config["results"]  # root of every output
+L = Layout(config["results"])  # every results path (spinecohort.layout)
+R = L.root
 LOGS = config["logs"]
-BENCH = f"{R}/benchmarks"
 COHORT = cohort_files(config)
-STORE = f"{R}/cohort.zarr"  # the virtual cohort (docs/store.md)
 # shard ids of the virtual cohort, zero-padded: one sample and one measure job each
 SHARDS = [
     f"{s:05d}"
@@ -32,42 +32,27 @@ def personalized_models():
     """The personalized .inp deck of every patient (personalize.smk; the figures and the release use it).
     Patient IDs = the cohort's STL stems (synthetic: P01..Pnn), as the cohort stage names them.
     """
-    return [f"{R}/personalized/{Path(p).stem}.inp" for p in COHORT["stls"]]
-
-
-def figure_files():
-    """Every figure of the pipeline (rules in figures.smk, the SSM curves in ssm.smk); the release packs them."""
-    return [
-        f"{R}/ssm/compactness.png",
-        f"{R}/ssm/quality.png",
-        f"{R}/figures/mode_variation.png",
-        f"{R}/figures/mean_model_parts.png",
-        f"{R}/figures/personalized_gallery.png",
-        f"{R}/figures/parameter_histograms.png",
-        f"{R}/figures/quality_summary.png",
-    ]
+    return [L.personalized_deck(Path(p).stem) for p in COHORT["stls"]]
 
 
 def final_outputs():
+    """The targets of `rule all`, each once."""
     return [
-        f"{R}/cohort/cohort.npz",
-        f"{R}/ssm/ssm.npz",
-        f"{R}/ssm/compactness.csv",
-        f"{R}/ssm/compactness.png",
-        f"{R}/ssm/quality.csv",
-        f"{R}/ssm/quality.png",
-        f"{R}/figures/mode_variation.png",
-        f"{R}/patients/parameters.csv",
-        f"{R}/Descriptive_List.xlsx",
-        f"{R}/virtual_cohort.csv",
-        f"{R}/store_check.csv",
-        f"{R}/virtual_cohort_tri_vs_hex.csv",
-        f"{R}/template/morph_report.csv",
-        f"{R}/template/mean_quality.csv",
-        f"{R}/template/hex_ssm.npz",
-        f"{R}/template/transfer_report.csv",
-        f"{R}/template/Mean_Model (Template).inp",
-        *figure_files(),
+        L.cohort,
+        L.ssm,
+        L.compactness_csv,
+        L.ssm_quality_csv,
+        L.patient_parameters,
+        L.descriptive_list,
+        L.virtual_cohort_csv,
+        L.store_check,
+        L.tri_vs_hex,
+        L.morph_report,
+        L.mean_quality,
+        L.hex_ssm,
+        L.transfer_report,
+        L.template_deck,
+        *L.figures,
         RELEASE_BAG,  # release.smk: the verified BagIt bag (its tag manifest is written last)
     ]
 
@@ -75,28 +60,19 @@ def final_outputs():
 def release_inputs(wildcards):
     """Inputs of the release (release.smk), i.e. everything the bag holds."""
     return {
-        "store": f"{STORE}/.initialized",
-        "store_check": f"{R}/store_check.csv",  # the bag packs only a store whose every shard checks out
-        "shards": expand(f"{R}/shards/{{shard}}.sample.json", shard=SHARDS),
-        "template_inp": f"{R}/template/Mean_Model (Template).inp",
-        "workbook": f"{R}/Descriptive_List.xlsx",
-        "virtual": f"{R}/virtual_cohort.csv",
-        "patient_table": f"{R}/patients/parameters.csv",
+        "store": L.store_initialized,
+        "store_check": L.store_check,  # the bag packs only a store whose every shard checks out
+        "shards": expand(L.shard_file("{shard}", "sample.json"), shard=SHARDS),
+        "template_inp": L.template_deck,
+        "workbook": L.descriptive_list,
+        "virtual": L.virtual_cohort_csv,
+        "patient_table": L.patient_parameters,
         "patients": COHORT["stls"],
         "personalized": personalized_models(),
         # the SSM figures every configuration makes, plus the figure stage's pictures
-        "figures": list(
-            dict.fromkeys(
-                [
-                    f"{R}/ssm/compactness.png",
-                    f"{R}/ssm/quality.png",
-                    f"{R}/figures/mode_variation.png",
-                    *figure_files(),
-                ]
-            )
-        ),
-        "ssm": f"{R}/ssm/ssm.npz",
-        "hex_ssm": f"{R}/template/hex_ssm.npz",
-        "template": f"{R}/template/template.npz",
-        "cohort": f"{R}/cohort/cohort.npz",
+        "figures": L.figures,
+        "ssm": L.ssm,
+        "hex_ssm": L.hex_ssm,
+        "template": L.template,
+        "cohort": L.cohort,
     }

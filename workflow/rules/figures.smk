@@ -6,11 +6,11 @@
 
 rule mode_variation_figure:
     input:
-        ssm=f"{R}/ssm/ssm.npz",
-        cohort=f"{R}/cohort/cohort.npz",
+        ssm=L.ssm,
+        cohort=L.cohort,
     output:
         report(
-            f"{R}/figures/mode_variation.png",
+            L.figure("figures/mode_variation.png"),
             category="1. Statistical shape model",
             caption="../report/mode_variation.rst",
             labels={"figure": "shape modes at -3, 0, +3 SD"},
@@ -18,7 +18,7 @@ rule mode_variation_figure:
     log:
         f"{LOGS}/mode_variation_figure.log",
     benchmark:
-        f"{BENCH}/mode_variation_figure.tsv"
+        L.benchmark("mode_variation_figure")
     conda:
         "../../environment.yml"
     threads: 1
@@ -32,11 +32,11 @@ rule mode_variation_figure:
 
 rule mean_model_parts_figure:
     input:
-        template=f"{R}/template/template.npz",
-        hex_ssm=f"{R}/template/hex_ssm.npz",
+        template=L.template,
+        hex_ssm=L.hex_ssm,
     output:
         report(
-            f"{R}/figures/mean_model_parts.png",
+            L.figure("figures/mean_model_parts.png"),
             category="2. Hexahedral FE template",
             caption="../report/mean_model_parts.rst",
             labels={"figure": "hex mean model by part"},
@@ -44,7 +44,7 @@ rule mean_model_parts_figure:
     log:
         f"{LOGS}/mean_model_parts_figure.log",
     benchmark:
-        f"{BENCH}/mean_model_parts_figure.tsv"
+        L.benchmark("mean_model_parts_figure")
     conda:
         "../../environment.yml"
     threads: 1
@@ -58,11 +58,11 @@ rule mean_model_parts_figure:
 
 rule parameter_histograms_figure:
     input:
-        virtual=f"{R}/virtual_cohort.csv",
-        patients=f"{R}/patients/parameters.csv",
+        virtual=L.virtual_cohort_csv,
+        patients=L.patient_parameters,
     output:
         report(
-            f"{R}/figures/parameter_histograms.png",
+            L.figure("figures/parameter_histograms.png"),
             category="3. Virtual cohort",
             caption="../report/parameter_histograms.rst",
             labels={"figure": "parameter histograms"},
@@ -70,7 +70,7 @@ rule parameter_histograms_figure:
     log:
         f"{LOGS}/parameter_histograms_figure.log",
     benchmark:
-        f"{BENCH}/parameter_histograms_figure.tsv"
+        L.benchmark("parameter_histograms_figure")
     conda:
         "../../environment.yml"
     threads: 1
@@ -85,11 +85,11 @@ rule parameter_histograms_figure:
 
 rule quality_summary_figure:
     input:
-        shards=expand(f"{R}/shards/{{shard}}.quality.csv", shard=SHARDS),
-        table3=f"{R}/template/mean_quality.csv",
+        shards=expand(L.shard_file("{shard}", "quality.csv"), shard=SHARDS),
+        table3=L.mean_quality,
     output:
         report(
-            f"{R}/figures/quality_summary.png",
+            L.figure("figures/quality_summary.png"),
             category="3. Virtual cohort",
             caption="../report/quality_summary.rst",
             labels={"figure": "mesh quality"},
@@ -97,7 +97,7 @@ rule quality_summary_figure:
     log:
         f"{LOGS}/quality_summary_figure.log",
     benchmark:
-        f"{BENCH}/quality_summary_figure.tsv"
+        L.benchmark("quality_summary_figure")
     conda:
         "../../environment.yml"
     threads: 1
@@ -110,12 +110,12 @@ rule quality_summary_figure:
 
 rule personalized_gallery_figure:
     input:
-        table=f"{R}/personalized/personalization.csv",
-        template=f"{R}/template/template.npz",
-        hex_ssm=f"{R}/template/hex_ssm.npz",
+        table=L.personalization_csv,
+        template=L.template,
+        hex_ssm=L.hex_ssm,
     output:
         report(
-            f"{R}/figures/personalized_gallery.png",
+            L.figure("figures/personalized_gallery.png"),
             category="4. Personalized models",
             caption="../report/personalized_gallery.rst",
             labels={"figure": "personalized models"},
@@ -123,7 +123,7 @@ rule personalized_gallery_figure:
     log:
         f"{LOGS}/personalized_gallery_figure.log",
     benchmark:
-        f"{BENCH}/personalized_gallery_figure.tsv"
+        L.benchmark("personalized_gallery_figure")
     conda:
         "../../environment.yml"
     threads: 1

@@ -4,14 +4,14 @@
 
 rule measure_patients:
     input:
-        f"{R}/cohort/cohort.npz",
+        L.cohort,
     output:
-        table=f"{R}/patients/parameters.csv",
-        comparison=f"{R}/patients/sheet_vs_measured.csv",
+        table=L.patient_parameters,
+        comparison=L.sheet_vs_measured,
     log:
         f"{LOGS}/measure_patients.log",
     benchmark:
-        f"{BENCH}/measure_patients.tsv"
+        L.benchmark("measure_patients")
     conda:
         "../../environment.yml"
     threads: 1
@@ -23,20 +23,20 @@ rule measure_patients:
 
 rule descriptive_list:
     input:
-        patients=f"{R}/patients/parameters.csv",
-        params=expand(f"{R}/shards/{{shard}}.params.csv", shard=SHARDS),
-        quality=expand(f"{R}/shards/{{shard}}.quality.csv", shard=SHARDS),
-        tri_vs_hex=expand(f"{R}/shards/{{shard}}.tri_vs_hex.csv", shard=SHARDS),
-        personalization=f"{R}/personalized/personalization.csv",  # sheet 2: the personalized models
+        patients=L.patient_parameters,
+        params=expand(L.shard_file("{shard}", "params.csv"), shard=SHARDS),
+        quality=expand(L.shard_file("{shard}", "quality.csv"), shard=SHARDS),
+        tri_vs_hex=expand(L.shard_file("{shard}", "tri_vs_hex.csv"), shard=SHARDS),
+        personalization=L.personalization_csv,  # sheet 2: the personalized models
     output:
-        workbook=f"{R}/Descriptive_List.xlsx",
-        virtual=f"{R}/virtual_cohort.csv",
-        virtual_parquet=f"{R}/virtual_cohort.parquet",  # typed twin of the CSV (write_table_twins)
-        tri_vs_hex=f"{R}/virtual_cohort_tri_vs_hex.csv",
+        workbook=L.descriptive_list,
+        virtual=L.virtual_cohort_csv,
+        virtual_parquet=L.virtual_cohort_parquet,  # typed twin of the CSV (write_table_twins)
+        tri_vs_hex=L.tri_vs_hex,
     log:
         f"{LOGS}/descriptive_list.log",
     benchmark:
-        f"{BENCH}/descriptive_list.tsv"
+        L.benchmark("descriptive_list")
     conda:
         "../../environment.yml"
     threads: 1

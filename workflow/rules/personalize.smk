@@ -5,21 +5,21 @@
 
 rule personalize:
     input:
-        cohort=f"{R}/cohort/cohort.npz",
-        aligned=f"{R}/ssm/aligned.npz",
-        ssm=f"{R}/ssm/ssm.npz",
-        parameters=f"{R}/patients/parameters.csv",
-        template=f"{R}/template/template.npz",
-        hex_ssm=f"{R}/template/hex_ssm.npz",
+        cohort=L.cohort,
+        aligned=L.aligned,
+        ssm=L.ssm,
+        parameters=L.patient_parameters,
+        template=L.template,
+        hex_ssm=L.hex_ssm,
     output:
-        table=f"{R}/personalized/personalization.csv",
-        report=f"{R}/personalized/report.md",
-        info=f"{R}/personalized/info.json",
+        table=L.personalization_csv,
+        report=L.personalization_report,
+        info=L.personalization_info,
         models=personalized_models(),
     log:
         f"{LOGS}/personalize.log",
     benchmark:
-        f"{BENCH}/personalize.tsv"
+        L.benchmark("personalize")
     conda:
         "../../environment.yml"
     threads: 1

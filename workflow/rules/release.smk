@@ -17,7 +17,7 @@ rule release:
     log:
         f"{LOGS}/release.log",
     benchmark:
-        f"{BENCH}/release.tsv"
+        L.benchmark("release")
     conda:
         "../../environment.yml"
     threads: 2

@@ -4,15 +4,15 @@
 
 rule rom_model:
     input:
-        deck=f"{R}/models/{{model_id}}.inp",
-        template=f"{R}/template/template.npz",
+        deck=L.model_file("{model_id}", "inp"),
+        template=L.template,
     output:
-        table=f"{R}/rom/{{model_id}}.csv",
-        runs=directory(f"{R}/rom/{{model_id}}"),
+        table=L.rom_table("{model_id}"),
+        runs=directory(L.rom_dir("{model_id}")),
     log:
         f"{LOGS}/rom_model/{{model_id}}.log",
     benchmark:
-        f"{BENCH}/rom_model/{{model_id}}.tsv"
+        L.benchmark("rom_model", "{model_id}")
     wildcard_constraints:
         model_id=r"model_\d{5}",
     conda:
@@ -27,15 +27,15 @@ rule rom_model:
 
 rule rom_validation:
     input:
-        f"{R}/rom/{config['rom']['model']}.csv",
+        L.rom_table(config["rom"]["model"]),
     output:
-        table=f"{R}/rom/validation.csv",
-        all_effect=f"{R}/rom/all_effect.csv",
-        figure=f"{R}/rom/validation.png",
+        table=L.rom_validation,
+        all_effect=L.rom_all_effect,
+        figure=L.rom_validation_png,
     log:
         f"{LOGS}/rom_validation.log",
     benchmark:
-        f"{BENCH}/rom_validation.tsv"
+        L.benchmark("rom_validation")
     conda:
         "../../environment.yml"
     threads: 1

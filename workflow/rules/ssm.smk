@@ -3,13 +3,13 @@
 
 rule gpa:
     input:
-        f"{R}/cohort/cohort.npz",
+        L.cohort,
     output:
-        f"{R}/ssm/aligned.npz",
+        L.aligned,
     log:
         f"{LOGS}/gpa.log",
     benchmark:
-        f"{BENCH}/gpa.tsv"
+        L.benchmark("gpa")
     conda:
         "../../environment.yml"
     threads: 1
@@ -23,19 +23,19 @@ rule gpa:
 
 rule pca:
     input:
-        f"{R}/ssm/aligned.npz",
+        L.aligned,
     output:
-        ssm=f"{R}/ssm/ssm.npz",
-        table=f"{R}/ssm/compactness.csv",
+        ssm=L.ssm,
+        table=L.compactness_csv,
         figure=report(
-            f"{R}/ssm/compactness.png",
+            L.figure("ssm/compactness.png"),
             category="1. Statistical shape model",
             caption="../report/compactness.rst",
         ),
     log:
         f"{LOGS}/pca.log",
     benchmark:
-        f"{BENCH}/pca.tsv"
+        L.benchmark("pca")
     conda:
         "../../environment.yml"
     threads: 1
@@ -47,19 +47,19 @@ rule pca:
 
 rule ssm_quality:
     input:
-        aligned=f"{R}/ssm/aligned.npz",
-        ssm=f"{R}/ssm/ssm.npz",
+        aligned=L.aligned,
+        ssm=L.ssm,
     output:
-        table=f"{R}/ssm/quality.csv",
+        table=L.ssm_quality_csv,
         figure=report(
-            f"{R}/ssm/quality.png",
+            L.figure("ssm/quality.png"),
             category="1. Statistical shape model",
             caption="../report/quality.rst",
         ),
     log:
         f"{LOGS}/ssm_quality.log",
     benchmark:
-        f"{BENCH}/ssm_quality.tsv"
+        L.benchmark("ssm_quality")
     conda:
         "../../environment.yml"
     threads: 1

@@ -3,15 +3,15 @@
 
 rule hex_template:
     input:
-        ssm=f"{R}/ssm/ssm.npz",
-        cohort=f"{R}/cohort/cohort.npz",
+        ssm=L.ssm,
+        cohort=L.cohort,
     output:
-        npz=f"{R}/template/template.npz",
-        vtu=f"{R}/template/template.vtu",
+        npz=L.template,
+        vtu=L.template_vtu,
     log:
         f"{LOGS}/hex_template.log",
     benchmark:
-        f"{BENCH}/hex_template.tsv"
+        L.benchmark("hex_template")
     conda:
         "../../environment.yml"
     threads: 1
@@ -23,17 +23,17 @@ rule hex_template:
 
 rule morph_template:
     input:
-        template=f"{R}/template/template.npz",
-        ssm=f"{R}/ssm/ssm.npz",
-        cohort=f"{R}/cohort/cohort.npz",
+        template=L.template,
+        ssm=L.ssm,
+        cohort=L.cohort,
     output:
-        nodes=f"{R}/template/mean_hex.npz",
-        vtu=f"{R}/template/mean_hex.vtu",
-        report=f"{R}/template/morph_report.csv",
+        nodes=L.mean_hex,
+        vtu=L.mean_hex_vtu,
+        report=L.morph_report,
     log:
         f"{LOGS}/morph_template.log",
     benchmark:
-        f"{BENCH}/morph_template.tsv"
+        L.benchmark("morph_template")
     conda:
         "../../environment.yml"
     threads: 1
@@ -45,17 +45,17 @@ rule morph_template:
 
 rule hex_ssm:
     input:
-        template=f"{R}/template/template.npz",
-        nodes=f"{R}/template/mean_hex.npz",
-        ssm=f"{R}/ssm/ssm.npz",
-        cohort=f"{R}/cohort/cohort.npz",
+        template=L.template,
+        nodes=L.mean_hex,
+        ssm=L.ssm,
+        cohort=L.cohort,
     output:
-        ssm=f"{R}/template/hex_ssm.npz",
-        report=f"{R}/template/transfer_report.csv",
+        ssm=L.hex_ssm,
+        report=L.transfer_report,
     log:
         f"{LOGS}/hex_ssm.log",
     benchmark:
-        f"{BENCH}/hex_ssm.tsv"
+        L.benchmark("hex_ssm")
     conda:
         "../../environment.yml"
     threads: 1
@@ -69,14 +69,14 @@ rule hex_ssm:
 
 rule template_inp:
     input:
-        template=f"{R}/template/template.npz",
-        nodes=f"{R}/template/mean_hex.npz",
+        template=L.template,
+        nodes=L.mean_hex,
     output:
-        f"{R}/template/Mean_Model (Template).inp",
+        L.template_deck,
     log:
         f"{LOGS}/template_inp.log",
     benchmark:
-        f"{BENCH}/template_inp.tsv"
+        L.benchmark("template_inp")
     conda:
         "../../environment.yml"
     threads: 1
@@ -89,16 +89,16 @@ rule template_inp:
 
 rule model_files:
     input:
-        template=f"{R}/template/template.npz",
-        hex_ssm=f"{R}/template/hex_ssm.npz",
-        ssm=f"{R}/ssm/ssm.npz",
-        cohort=f"{R}/cohort/cohort.npz",
+        template=L.template,
+        hex_ssm=L.hex_ssm,
+        ssm=L.ssm,
+        cohort=L.cohort,
     output:
-        f"{R}/models/{{model_id}}.{{ext}}",
+        L.model_file("{model_id}", "{ext}"),
     log:
         f"{LOGS}/model_files/{{model_id}}.{{ext}}.log",
     benchmark:
-        f"{BENCH}/model_files/{{model_id}}.{{ext}}.tsv"
+        L.benchmark("model_files", "{model_id}.{ext}")
     wildcard_constraints:
         model_id=r"model_\d{5}",
         ext="inp|stl|vtu",
@@ -115,15 +115,15 @@ rule model_files:
 
 rule template_quality:
     input:
-        template=f"{R}/template/template.npz",
-        nodes=f"{R}/template/mean_hex.npz",
+        template=L.template,
+        nodes=L.mean_hex,
     output:
-        elements=f"{R}/template/mean_quality_elements.csv.gz",
-        table3=f"{R}/template/mean_quality.csv",
+        elements=L.mean_quality_elements,
+        table3=L.mean_quality,
     log:
         f"{LOGS}/template_quality.log",
     benchmark:
-        f"{BENCH}/template_quality.tsv"
+        L.benchmark("template_quality")
     conda:
         "../../environment.yml"
     threads: 1
