@@ -1,4 +1,4 @@
-# Stage 5: the virtual cohort: the Zarr store, one sample/check/repair job and one measure job per shard.
+# Stage 5: the virtual cohort: the Zarr store and one sample/check/repair/measure/write job per shard.
 # (L and SHARDS come from common.smk: the Descriptive_List rule gathers the shards too.) The store
 # itself is a directory written shard by shard; its .initialized marker is what the rules exchange.
 
@@ -27,16 +27,20 @@ rule init_store:
         "../scripts/init_store.py"
 
 
-# Check and repair run before the single store write (one rule, not the design's two): the store only
-# ever holds the coordinates the FE models use, and a shard is either complete or absent.
+# One pass per shard (sample -> check and repair -> Table 3 rows -> parameters -> one streaming store
+# write): the store only ever holds the coordinates the FE models use, nothing is decoded again, and a
+# shard is either complete (its record and checksum sidecar exist) or absent.
 rule sample_shard:
     input:
         store=L.store_initialized,
         ssm=L.ssm,
         hex_ssm=L.hex_ssm,
         template=L.template,
+        cohort=L.cohort,
     output:
         quality=L.shard_file("{shard}", "quality.csv"),
+        params=L.shard_file("{shard}", "params.csv"),
+        tri_vs_hex=L.shard_file("{shard}", "tri_vs_hex.csv"),
         record=L.shard_file("{shard}", "sample.json"),
     log:
         f"{LOGS}/sample_shard/{{shard}}.log",
@@ -46,32 +50,10 @@ rule sample_shard:
         "../../environment.yml"
     threads: 1
     params:
-        grid=config["grid"],
         settings=config["store"],
-    script:
-        "../scripts/sample_shard.py"
-
-
-rule measure_shard:
-    input:
-        store=L.store_initialized,
-        record=L.shard_file("{shard}", "sample.json"),
-        cohort=L.cohort,
-        template=L.template,
-    output:
-        params=L.shard_file("{shard}", "params.csv"),
-        tri_vs_hex=L.shard_file("{shard}", "tri_vs_hex.csv"),
-    log:
-        f"{LOGS}/measure_shard/{{shard}}.log",
-    benchmark:
-        L.benchmark("measure_shard", "{shard}")
-    conda:
-        "../../environment.yml"
-    threads: 1
-    params:
         measure=config["measure"],
     script:
-        "../scripts/measure_shard.py"
+        "../scripts/sample_shard.py"
 
 
 # Integrity of the whole store against the sha256 recorded by each shard's writer: fails naming the bad

@@ -1,13 +1,15 @@
-"""Per-shard logic of the virtual-cohort stage: sample, check and repair, measure (one shard = one job).
+"""Per-shard logic of the virtual-cohort stage: sample, check and repair, measure, store (one shard = one job).
 
-A shard is a contiguous model-ID range (``store.shard_range``).  ``sample_shard`` samples the triangulated
-and the hexahedral SSM for all its models in chunks (float64 arithmetic, float32 result, so a 343-model
-shard at ~81k nodes stays well under 2 GB), checks every hex of every model with the fused numba kernel
-(``quality.morph_scaled_jacobian_nb``), and untangles the models with inverted hexes exactly as
+A shard is a contiguous model-ID range (``store.shard_range``).  ``process_shard`` makes one pass over it
+in batches of whole store chunks: it samples the triangulated and the hexahedral SSM (float64 formula plus
+the disc-contact distraction), checks every hex of every model with the fused numba kernel
+(``quality.morph_scaled_jacobian_nb``), untangles the models with inverted hexes exactly as
 ``models.hex_points_checked`` does (``repair.untangle`` against the hex mean, one shared
-``UntangleContext``).  Check and repair happen *before* the single ``store.write_shard``, so the store
-only ever holds the coordinates the FE models use; a model that cannot be repaired is kept as sampled
-and reported (``invalid_after > 0``).
+``UntangleContext``), computes the Table 3 rows and the spinopelvic parameters on those float64
+coordinates, and hands the batch to the store's ``ShardWriter``; nothing is read back.  Memory is one
+batch (49 models x ~145k nodes x 3 x 8 B ~ 170 MB per float64 array), whatever the shard size.  Check and
+repair happen *before* the store write, so the store only ever holds the coordinates the FE models use;
+a model that cannot be repaired is kept as sampled and reported (``invalid_after > 0``).
 
 ``hex_landmarks`` builds a :class:`Landmarks` on the hex model's node numbering (hex nodes, then surface
 nodes), so ``measure.measure`` runs unchanged on the hex coordinates and the tri-vs-hex difference of
@@ -179,28 +181,94 @@ def check_and_repair(
     return rows[cols + [c for c in rows.columns if c not in cols]]
 
 
-def sample_shard(
+def _param_diff(p_tri: pd.DataFrame, p_hex: pd.DataFrame) -> pd.DataFrame:
+    """Per numeric parameter: max and mean |tri - hex| over the models (NaN where a column is all NaN)."""
+    num = [
+        c for c in p_tri.columns if pd.api.types.is_numeric_dtype(p_tri[c]) and not pd.api.types.is_bool_dtype(p_tri[c])
+    ]
+    d = np.abs(p_tri[num].to_numpy(float) - p_hex[num].to_numpy(float))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns (GAP without age) stay NaN
+        diff = pd.DataFrame(
+            {
+                "parameter": num,
+                "max_abs_diff": np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0),
+                "mean_abs_diff": np.nanmean(d, axis=0),
+            }
+        )
+    diff.loc[~np.isfinite(diff["max_abs_diff"]), "max_abs_diff"] = np.nan
+    return diff
+
+
+def _params_table(weights: np.ndarray, model_ids: np.ndarray, p_tri: pd.DataFrame) -> pd.DataFrame:
+    w = np.asarray(weights, dtype=np.float64)
+    head = pd.DataFrame(
+        {"model_id": model_name(np.asarray(model_ids)), **{f"w{i + 1}": w[:, i] for i in range(w.shape[1])}}
+    )
+    return pd.concat([head, p_tri.reset_index(drop=True)], axis=1)
+
+
+def process_shard(
     ssm: SSM,
     hex_ssm: HexSSM,
     template: HexTemplate,
     weights: np.ndarray,
     model_ids: np.ndarray,
-    chunk: int = DEFAULT_CHUNK,
+    tri_landmarks: Landmarks,
+    hex_lm: Landmarks,
+    writer=None,
+    batch: int = DEFAULT_CHUNK,
     repair: bool = True,
     log=None,
-) -> tuple[np.ndarray, np.ndarray, pd.DataFrame, dict]:
-    """Sample, check and repair one shard -> (tri, hex, quality table, timing dict in s)."""
-    t0 = time.perf_counter()
-    tri, hexp, gaps, offsets = sample_points(ssm, hex_ssm, weights, chunk, return_contact=True)
-    t1 = time.perf_counter()
-    quality = check_and_repair(hexp, template, hex_ssm, weights, model_ids, repair, log, offsets)
-    if hex_ssm.contact is not None:
-        for key, v in distraction_summary(gaps, offsets).items():
-            quality[key] = v
-    # the seed's Table 3 columns per model and part, on the coordinates as stored (after repair)
-    quality = pd.concat([quality, table3_per_model(hexp, template.hexes, template.part_of_hex())], axis=1)
-    t2 = time.perf_counter()
-    return tri, hexp, quality, {"sample_s": t1 - t0, "check_repair_s": t2 - t1}
+    **measure_kw,
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, dict]:
+    """One pass over a shard, batch by batch, nothing decoded again: sample (float64 SSM formula + disc
+    contact) -> check every hex, repair inverted models -> Table 3 rows -> spinopelvic parameters of the
+    tri and the hex model -> ``writer.add`` (a :class:`~spinecohort.store.zarr_store.ShardWriter`; None: no
+    store write).  The parameters come from the float64 coordinates, i.e. from what the store holds before
+    its 2^-10 mm rounding.
+
+    ``batch`` models per step (rounded up to whole store chunks by the caller); ``measure_kw``: vertical,
+    assumed_age, c7_proxy.  Returns (quality table, params table, tri-vs-hex table, timing in s).
+    """
+    w = _check_weights(weights, min(ssm.n_modes, hex_ssm.fields.shape[0]), "SSM")
+    ids = np.asarray(model_ids, dtype=np.int64)
+    if len(ids) != len(w):
+        raise ValueError(f"{len(w)} weights but {len(ids)} model IDs")
+    m = w.shape[1]
+    df_tri = ssm.deformation_fields(m).reshape(m, -1)
+    df_hex = hex_ssm.fields[:m].reshape(m, -1)
+    part = template.part_of_hex()
+    timing = dict.fromkeys(("sample_s", "check_repair_s", "table3_s", "measure_s", "write_s"), 0.0)
+    quality, p_tri, p_hex = [], [], []
+    for i in range(0, len(w), batch):
+        wb, ib = w[i : i + batch], ids[i : i + batch]
+        t0 = time.perf_counter()
+        t64 = (ssm.mean.ravel() + wb @ df_tri).reshape(len(wb), *ssm.mean.shape)
+        h64 = (hex_ssm.mean.ravel() + wb @ df_hex).reshape(len(wb), *hex_ssm.mean.shape)
+        offsets = None
+        if hex_ssm.contact is not None:
+            gaps, offsets = resolve_contact(t64, h64, hex_ssm.contact)
+        t1 = time.perf_counter()
+        q = check_and_repair(h64, template, hex_ssm, wb, ib, repair, log, offsets)
+        if hex_ssm.contact is not None:
+            for key, v in distraction_summary(gaps, offsets).items():
+                q[key] = v
+        t2 = time.perf_counter()
+        # the seed's Table 3 columns per model and part, on the coordinates the store holds (after repair)
+        quality.append(pd.concat([q, table3_per_model(h64, template.hexes, part)], axis=1))
+        t3 = time.perf_counter()
+        p_tri.append(measure(t64, tri_landmarks, **measure_kw))
+        p_hex.append(measure(h64, hex_lm, **measure_kw))
+        t4 = time.perf_counter()
+        if writer is not None:
+            writer.add(t64, h64)
+        t5 = time.perf_counter()
+        for key, dt in zip(timing, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+            timing[key] += dt
+    p_tri = pd.concat(p_tri, ignore_index=True)
+    p_hex = pd.concat(p_hex, ignore_index=True)
+    return pd.concat(quality, ignore_index=True), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
 
 
 # ---------------------------------------------------------------------------------------- landmarks
@@ -269,12 +337,9 @@ def measure_shard(
     hex_lm: Landmarks,
     **measure_kw,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Parameters of a shard on the triangulated points, and their difference to the hex points.
-
-    Returns (params: model_id, w1..wm [SD], every parameter of ``measure`` on the tri points;
-    tri_vs_hex: per numeric parameter, max and mean |tri - hex| over the shard's models, in its unit).
-    ``measure_kw``: vertical, assumed_age, c7_proxy (no age: virtual models have none).
-    """
+    """Parameters of given coordinates (e.g. a shard read back from the store) on the triangulated points,
+    and their difference to the hex points: (params: model_id, w1..wm [SD], every parameter of ``measure``;
+    tri_vs_hex: per numeric parameter, max and mean |tri - hex| over the models, in its unit)."""
     w = np.asarray(weights, dtype=np.float64)
     if len(w) != len(tri) or len(w) != len(hexp) or len(w) != len(model_ids):
         raise ValueError(
@@ -283,25 +348,7 @@ def measure_shard(
         )
     p_tri = measure(tri, tri_landmarks, **measure_kw)
     p_hex = measure(hexp, hex_lm, **measure_kw)
-    head = pd.DataFrame(
-        {"model_id": model_name(np.asarray(model_ids)), **{f"w{i + 1}": w[:, i] for i in range(w.shape[1])}}
-    )
-    params = pd.concat([head, p_tri], axis=1)
-    num = [
-        c for c in p_tri.columns if pd.api.types.is_numeric_dtype(p_tri[c]) and not pd.api.types.is_bool_dtype(p_tri[c])
-    ]
-    d = np.abs(p_tri[num].to_numpy(float) - p_hex[num].to_numpy(float))
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns (GAP without age) stay NaN
-        diff = pd.DataFrame(
-            {
-                "parameter": num,
-                "max_abs_diff": np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0),
-                "mean_abs_diff": np.nanmean(d, axis=0),
-            }
-        )
-    diff.loc[~np.isfinite(diff["max_abs_diff"]), "max_abs_diff"] = np.nan
-    return params, diff
+    return _params_table(w, model_ids, p_tri), _param_diff(p_tri, p_hex)
 
 
 def shard_models_of(path, shard: int) -> tuple[np.ndarray, np.ndarray]:

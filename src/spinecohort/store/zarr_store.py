@@ -1,75 +1,75 @@
-"""The sharded Zarr v3 store of the virtual cohort (``results/cohort.zarr``).
+"""The sharded Zarr v3 store of the virtual cohort (``results/cohort.zarr``), core Zarr v3 codecs only.
 
 Layout (one store, written shard by shard by independent jobs)::
 
-    weights      (n_models, n_modes)       float64, SD units; one chunk per shard
-    tri/points   (n_models, n_tri_nodes, 3) float32 mm on read; one model per chunk, shard_models per shard
-    hex/points   (n_models, n_hex_nodes, 3) float32 mm on read; same chunking
-    checksums/shard_NNNNN                  per-shard group whose attributes hold the sha256 of the shard's
-                                           stored objects; written last, atomically: the completion mark
+    weights      (n_models, n_modes)        float64, SD units; one chunk per shard (zstd)
+    tri/points   (n_models, n_tri_nodes, 3) float32 mm; chunk_models models per inner chunk, shard_models per shard
+    hex/points   (n_models, n_hex_nodes, 3) float32 mm; same chunking
+    checksums/shard_NNNNN                   per-shard group whose attributes hold the sha256 of the shard's
+                                            stored objects; written last, atomically: the completion mark
 
 Model IDs are mixed-radix numbers of the SD-level indices, mode 1 most significant
 (``model_id = sum_i (w_i + 3) * 7^(5 - i)`` on the default 5 x {-3..3} grid); a shard is the contiguous
-ID range ``[shard * shard_models, (shard + 1) * shard_models)``, so with 343 models per shard the five
-modes split into 49 shards of fixed (w_1, w_2).
+ID range ``[shard * shard_models, (shard + 1) * shard_models)``.
 
-Encoding (chosen by measurement, see docs/store.md): coordinates are quantized to a fixed quantum
-(0.001 mm) by numcodecs' FixedScaleOffset, transposed so each chunk is three runs of x, y, z along the
-node order, delta-coded along the nodes (neighbouring mesh nodes are close, so deltas are small), then
-byte-shuffled and zstd-compressed.  A plain ``zarr.open(path)["hex/points"][i]`` decodes to millimetres
-(float32) without project code: 3.7 bytes per stored node at 81k nodes per model, 4.9 at 17k, against
-about 11 for float32+zstd.  All codecs come from zarr/numcodecs; only the layout is ours.
+Encoding (chosen by measurement, docs/store.md): every array uses only codecs of the Zarr v3 core
+specification, so any conforming reader (zarr-python, tensorstore, zarrs, zarr.js, Zarr.jl) decodes
+``z["hex/points"][i]`` to float32 millimetres.  Coordinates are rounded to multiples of 2^-10 mm (exact in
+float32 for |x| < 16 m, so the stored value *is* the rounded one: error <= 2^-11 mm = 0.49 um), an inner
+chunk holds the ``chunk_models`` models along the last mode, and the ``transpose`` codec stores it
+coordinate-major with the model axis innermost (x of node 0 of the 7 models, x of node 1, ...), where
+neighbouring values share their high bits; ``blosc`` (bitshuffle, zstd level 1) then packs the bit planes.
+Sharding codec: one shard object per array per shard, index at the end with crc32c.
 
-Why writes go through :func:`write_shard`: the numcodecs filters flatten their input with
-``reshape(-1, order="A")``; after the transpose codec a C-ordered chunk is an F-contiguous view, which
-would delta-code the interleaved xyz order and decode wrongly.  Writing with the array's memory order
-set to "F" makes the transposed view C-contiguous, so the stored bytes are exactly what the codec chain
-specifies (reading needs no special config).  :func:`write_shard` verifies every shard it writes by
-decoding it again, so a change of that behaviour in zarr/numcodecs fails loudly instead of silently.
+:class:`ShardWriter` writes a shard object itself (the sharding format: the encoded inner chunks, then the
+index of (offset, nbytes) uint64 pairs and its crc32c), streaming batch by batch, so a job never holds a
+whole shard; its bytes are identical to zarr-python's own write of the same array (tested), and a second
+implementation (tensorstore) reads them (tested).
 """
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import os
 import signal
-import warnings
+import time
 from pathlib import Path
 
+import google_crc32c
 import numpy as np
 import zarr
-from zarr.codecs import Delta, FixedScaleOffset, Shuffle, TransposeCodec, ZstdCodec
+from numcodecs import Blosc
+from zarr.codecs import BloscCodec, TransposeCodec, ZstdCodec
 
 #: SD levels of the default grid and number of modes (5 x {-3..3} -> 16,807 models).
 DEFAULT_LEVELS = (-3, -2, -1, 0, 1, 2, 3)
 DEFAULT_N_MODES = 5
-DEFAULT_SHARD_MODELS = 343
-#: Coordinate quantum of the integer encodings, mm (far below the 0.04 mm morph tolerance).
-DEFAULT_QUANTUM_MM = 0.001
-ENCODINGS = ("int32-delta", "int32", "float32")
+DEFAULT_SHARD_MODELS = 2401
+#: coordinates are stored as multiples of 2^-QUANTUM_EXP mm (2^-10 mm = 0.98 um; rounding error <= 0.49 um)
+QUANTUM_EXP = 10
+ENCODINGS = ("float32-q10", "float32")
 POINT_ARRAYS = ("tri/points", "hex/points")
-STORE_FORMAT = "spinecohort.cohort-store/1"
+#: version 2: core Zarr v3 codecs only (version 1 used numcodecs filters: refused, see _open_meta)
+STORE_FORMAT = "spinecohort.cohort-store/2"
+_FORMAT_PREFIX = "spinecohort.cohort-store/"
+#: blosc inside each inner chunk: zstd level 1 with bitshuffle on 1 MiB blocks (docs/store.md: levels 2-3
+#: save 1-2 % of the bytes at 2-5x the encode time)
+BLOSC_CLEVEL = 1
+BLOSC_BLOCK_BYTES = 1 << 20
+#: transpose of an inner chunk (models, nodes, xyz) -> stored (xyz, nodes, models)
+CHUNK_ORDER = (2, 1, 0)
 _CHECKSUM_DIR = "checksums"
+_EMPTY = 2**64 - 1  # the sharding index's marker of a chunk that is not stored
 #: fault injection for the kill-and-resume test: a process with this variable set to a shard number is
-#: SIGKILLed by ``write_shard`` after that shard's first array is written (as a node failure would)
+#: SIGKILLed by ``ShardWriter.close`` after that shard's first array object is in place (a node failure)
 FAULT_KILL_ENV = "SPINECOHORT_FAULT_KILL_SHARD"
-# float32 spacing relative to magnitude; three roundings (input cast, scaled product, decoded cast)
-# each contribute at most half an ulp.
+# float32 spacing relative to magnitude: one rounding contributes at most half an ulp
 _F32_HALF_ULP_REL = 2.0**-24
 
 
-def _quiet_numcodecs(func):
-    """Silence zarr's 'numcodecs codecs are not in the v3 spec' warning, raised on every metadata parse."""
-
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Numcodecs codecs are not in the Zarr", category=UserWarning)
-            return func(*args, **kwargs)
-
-    return wrapper
+class StoreVersionError(ValueError):
+    """The store was written by another version of spinecohort (its ``format`` attribute differs)."""
 
 
 # --------------------------------------------------------------------------------------------- IDs
@@ -153,41 +153,46 @@ def shard_range(
 
 
 # ---------------------------------------------------------------------------------------- encoding
-def _codecs(encoding: str, quantum_mm: float) -> dict:
-    """filters/compressors for create_array and the write-time memory order the chain needs."""
+def quantize_mm(x: np.ndarray, encoding: str = "float32-q10") -> np.ndarray:
+    """Coordinates (mm, any float dtype) as stored: float32 multiples of 2^-10 mm ("float32-q10") or the
+    nearest float32 ("float32").  Rounding happens in float64, so it is exact: |x| * 2^10 < 2^24."""
     if encoding == "float32":
-        return dict(filters=None, compressors=[ZstdCodec(level=3)], order="C")
-    if not (0 < quantum_mm <= DEFAULT_QUANTUM_MM):
-        raise ValueError(f"quantum_mm must be in (0, {DEFAULT_QUANTUM_MM}] mm, got {quantum_mm}")
-    scale = 1.0 / quantum_mm
-    # numcodecs stores the scale as given; an integral scale keeps the JSON readable and the codec exact
-    scale = int(round(scale)) if abs(scale - round(scale)) < 1e-9 else scale
-    fso = FixedScaleOffset(offset=0, scale=scale, dtype="<f4", astype="<i4")
-    # byte shuffle + zstd 3: as small as Blosc-zstd 5 (3.6 vs 3.57 B/node at 81k nodes) at a third of the
-    # encode time; bitshuffle and higher levels measured larger or much slower (docs/store.md)
-    packed = [Shuffle(elementsize=4), ZstdCodec(level=3)]
-    if encoding == "int32":
-        return dict(filters=[fso], compressors=packed, order="C")
-    if encoding == "int32-delta":
-        return dict(filters=[TransposeCodec(order=(0, 2, 1)), fso, Delta(dtype="<i4")], compressors=packed, order="F")
-    raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
+        return np.asarray(x, dtype=np.float32)
+    if encoding != "float32-q10":
+        raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
+    scale = float(2**QUANTUM_EXP)
+    return (np.rint(np.asarray(x, dtype=np.float64) * scale) / scale).astype(np.float32)
 
 
-def error_bound_mm(encoding: str, quantum_mm: float = DEFAULT_QUANTUM_MM, max_abs_mm: float = 512.0) -> float:
+def _blosc_codecs(clevel: int) -> tuple[BloscCodec, Blosc]:
+    """The core-spec blosc codec of the point arrays and the identical numcodecs compressor the writer uses."""
+    cfg = dict(cname="zstd", clevel=int(clevel), blocksize=BLOSC_BLOCK_BYTES)
+    return (
+        BloscCodec(shuffle="bitshuffle", typesize=4, **cfg),
+        Blosc(shuffle=Blosc.BITSHUFFLE, typesize=4, **cfg),
+    )
+
+
+def error_bound_mm(encoding: str, max_abs_mm: float = 512.0) -> float:
     """Largest |decoded - input| in mm for coordinates with |x| <= max_abs_mm.
 
-    Integer encodings: half a quantum plus three float32 roundings (input cast, scaled product, decoded
-    value), each at most 2^-24 |x|; float32: one rounding.
+    "float32-q10": half the 2^-10 mm quantum (the rounded value is exact in float32); "float32": one float32
+    rounding, at most 2^-24 |x|.
     """
     if encoding == "float32":
         return _F32_HALF_ULP_REL * max_abs_mm
-    if encoding in ("int32", "int32-delta"):
-        return 0.5 * quantum_mm + 3 * _F32_HALF_ULP_REL * max_abs_mm
+    if encoding == "float32-q10":
+        return 0.5 * 2.0**-QUANTUM_EXP
     raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
 
 
+def default_chunk_models(shard_models: int, levels=DEFAULT_LEVELS) -> int:
+    """Models per inner chunk: the models along the last mode (len(levels)) when they tile the shard, else 1."""
+    k = len(_levels_array(levels))
+    return k if shard_models % k == 0 else 1
+
+
 # ------------------------------------------------------------------------------------------- create
-@_quiet_numcodecs
 def create_store(
     path: str | Path,
     n_tri_nodes: int,
@@ -196,26 +201,33 @@ def create_store(
     levels=DEFAULT_LEVELS,
     shard_models: int = DEFAULT_SHARD_MODELS,
     attrs: dict | None = None,
-    encoding: str = "int32-delta",
-    quantum_mm: float = DEFAULT_QUANTUM_MM,
+    encoding: str = "float32-q10",
     max_abs_mm: float = 512.0,
+    chunk_models: int | None = None,
+    clevel: int = BLOSC_CLEVEL,
     overwrite: bool = False,
 ) -> zarr.Group:
     """Create the empty cohort store (Zarr v3) with ``weights``, ``tri/points`` and ``hex/points``.
 
     attrs: extra JSON attributes (e.g. ``ssm_sha256``, ``template_sha256`` from :func:`file_sha256`).
-    max_abs_mm: the largest |coordinate| the store accepts; it sets the stated error bound and keeps the
-    integer deltas inside int32.
+    max_abs_mm: the largest |coordinate| the store accepts (mm).  chunk_models: models per inner chunk
+    (default :func:`default_chunk_models`); it must divide shard_models (a Zarr shard is whole chunks).
+    clevel: blosc-zstd level of the point arrays.
     """
     for name, n in (("n_tri_nodes", n_tri_nodes), ("n_hex_nodes", n_hex_nodes)):
         if int(n) < 1:
             raise ValueError(f"{name} must be >= 1, got {n}")
+    if encoding not in ENCODINGS:
+        raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
+    if not 0 < max_abs_mm < 2.0 ** (24 - QUANTUM_EXP):
+        raise ValueError(f"max_abs_mm must be in (0, {2 ** (24 - QUANTUM_EXP)}) mm, got {max_abs_mm}")
     lv = _levels_array(levels)
     total = n_models(n_modes, lv)
     n_sh = n_shards(total, shard_models)
-    enc = _codecs(encoding, quantum_mm)  # validates before anything is created
-    if encoding != "float32" and 2 * max_abs_mm / quantum_mm >= 2**31:
-        raise ValueError(f"max_abs_mm={max_abs_mm} overflows int32 deltas at quantum {quantum_mm} mm")
+    cm = default_chunk_models(shard_models, lv) if chunk_models is None else int(chunk_models)
+    if cm < 1 or shard_models % cm:
+        raise ValueError(f"chunk_models={chunk_models} must be >= 1 and divide shard_models={shard_models}")
+    blosc, _ = _blosc_codecs(clevel)
     if Path(path).exists() and not overwrite:
         raise ValueError(f"{path} already exists; pass overwrite=True to replace it")
     root = zarr.open_group(str(path), mode="w" if overwrite else "w-", zarr_format=3)
@@ -230,11 +242,12 @@ def create_store(
             "n_models": int(total),
             "model_id": "sum_i index(w_i in levels) * len(levels)^(n_modes - i), mode 1 most significant",
             "shard_models": int(shard_models),
+            "chunk_models": cm,
             "n_shards": int(n_sh),
             "encoding": encoding,
-            "quantum_mm": float(quantum_mm) if encoding != "float32" else None,
+            "quantum_mm": 2.0**-QUANTUM_EXP if encoding == "float32-q10" else None,
             "max_abs_mm": float(max_abs_mm),
-            "error_bound_mm": error_bound_mm(encoding, quantum_mm, max_abs_mm),
+            "error_bound_mm": error_bound_mm(encoding, max_abs_mm),
         }
     )
     root.create_array(
@@ -250,11 +263,11 @@ def create_store(
         a = root.create_array(
             name,
             shape=(total, int(n), 3),
-            chunks=(1, int(n), 3),
+            chunks=(cm, int(n), 3),
             shards=(shard_models, int(n), 3),
             dtype="f4",
-            filters=enc["filters"],
-            compressors=enc["compressors"],
+            filters=[TransposeCodec(order=CHUNK_ORDER)],
+            compressors=[blosc],
             fill_value=0.0,
             dimension_names=("model", "node", "xyz"),
         )
@@ -293,89 +306,174 @@ def _open_meta(path: str | Path) -> tuple[zarr.Group, dict]:
     p = Path(path)
     if not (p / "zarr.json").is_file():
         raise ValueError(f"{p} is not a cohort store (no zarr.json); create it with create_store")
-    root = zarr.open_group(str(p), mode="r")
-    meta = dict(root.attrs)
-    if meta.get("format") != STORE_FORMAT:
-        raise ValueError(f"{p} is not a spinecohort cohort store (format {meta.get('format')!r})")
-    return root, meta
+    # the root zarr.json alone: opening the group would parse the arrays' metadata too, which fails on
+    # codecs an older version used
+    meta = json.loads((p / "zarr.json").read_text()).get("attributes", {})
+    fmt = meta.get("format")
+    if fmt != STORE_FORMAT:
+        if isinstance(fmt, str) and fmt.startswith(_FORMAT_PREFIX):
+            raise StoreVersionError(
+                f"{p} was written by another spinecohort version (format {fmt!r}, this version reads "
+                f"{STORE_FORMAT!r}: core Zarr v3 codecs only); it cannot be read correctly. Rebuild it: "
+                f"remove {p} and the shard records (results/shards/), then run snakemake again"
+            )
+        raise ValueError(f"{p} is not a spinecohort cohort store (format {fmt!r})")
+    return zarr.open_group(str(p), mode="r"), meta
 
 
-@_quiet_numcodecs
-def write_shard(
-    path: str | Path, shard: int, tri_points: np.ndarray, hex_points: np.ndarray, verify: bool = True
-) -> dict:
-    """Write shard ``shard`` (its exact shard-aligned region of both point arrays and ``weights``).
+def _check_coordinates(name: str, shard: int, x: np.ndarray, max_abs_mm: float) -> None:
+    lo, hi = float(x.min()), float(x.max())  # NaN propagates; no temporaries on large batches
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise ValueError(f"{name} of shard {shard} has non-finite coordinates")
+    if max(-lo, hi) > max_abs_mm:
+        raise ValueError(
+            f"{name} of shard {shard} exceeds the store's max_abs_mm={max_abs_mm} "
+            f"(coordinates span [{lo:.1f}, {hi:.1f}] mm)"
+        )
 
-    tri_points (S, n_tri_nodes, 3), hex_points (S, n_hex_nodes, 3) in mm, S = models in the shard.
-    After the data, a checksum sidecar is written atomically; it is the shard's completion mark.
-    Returns the sidecar record.
+
+class ShardWriter:
+    """Write shard ``shard`` of both point arrays batch by batch, then its weights and its sidecar.
+
+    ``add(tri, hex)`` takes the next models of the shard in ID order (mm, any float dtype; batches a multiple
+    of ``chunk_models`` except the last), rounds them as stored, encodes each inner chunk (transpose, blosc)
+    and appends it to ``<object>.<pid>.partial``; ``close()`` appends the shard index (offset and nbytes per
+    chunk, uint64 little-endian, then its crc32c), moves the objects into place (rename: atomic), writes the
+    weights and last the checksum sidecar, the shard's completion mark.  A writer that is not closed
+    leaves no sidecar; the next writer of the shard removes the leftovers first.
     """
-    p = Path(path)
-    root, meta = _open_meta(p)
-    total, sm = meta["n_models"], meta["shard_models"]
-    start, stop = shard_range(int(shard), sm, total)
-    arrays = {"tri/points": np.asarray(tri_points), "hex/points": np.asarray(hex_points)}
-    for name, x in arrays.items():
+
+    def __init__(self, path: str | Path, shard: int):
+        self.path = Path(path)
+        root, meta = _open_meta(self.path)
+        self.meta, self.shard = meta, int(shard)
+        self.start, self.stop = shard_range(self.shard, meta["shard_models"], meta["n_models"])
+        self.chunk = int(meta["chunk_models"])
+        self.n_nodes = {name: root[name].shape[1] for name in POINT_ARRAYS}
+        clevel = root["tri/points"].metadata.codecs[0].codecs[-1].clevel  # sharding -> inner chain -> blosc
+        self._codec = _blosc_codecs(clevel)[1]
+        self._clear()
+        self.objects = dict(zip(POINT_ARRAYS, _shard_objects(self.path, self.shard)[:2]))
+        self._tmp, self._files, self._index, self._sha, self._offset = {}, {}, {}, {}, {}
+        for name, obj in self.objects.items():
+            obj.parent.mkdir(parents=True, exist_ok=True)
+            self._tmp[name] = obj.with_name(f"{obj.name}.{os.getpid()}.partial")
+            self._files[name] = open(self._tmp[name], "wb")
+            slots = meta["shard_models"] // self.chunk
+            self._index[name] = np.full((slots, 2), _EMPTY, dtype="<u8")
+            self._sha[name] = hashlib.sha256()
+            self._offset[name] = 0
+        self.n_written = 0
+        self.encode_cpu_s = 0.0  # CPU time in the codec alone (the benchmark's compression floor)
+        self.stored_bytes = 0
+
+    def _clear(self) -> None:
+        """Remove the sidecar (a rewrite is incomplete until its new one lands), the shard's objects and
+        any ``*.partial`` of a killed writer: zarr would otherwise read a stale index."""
+        side = self.path / _sidecar(self.shard)
+        if side.exists():
+            for f in side.iterdir():
+                f.unlink()
+            side.rmdir()
+        for obj in _shard_objects(self.path, self.shard):
+            obj.unlink(missing_ok=True)
+            if obj.parent.is_dir():
+                for stale in obj.parent.glob(obj.name + ".*.partial"):
+                    stale.unlink()
+
+    def _check(self, name: str, x: np.ndarray) -> None:
+        want = (self.n_nodes[name], 3)
+        if x.ndim != 3 or x.shape[1:] != want:
+            raise ValueError(f"{name} of shard {self.shard} must have shape (models, {want[0]}, 3), got {x.shape}")
+        _check_coordinates(name, self.shard, x, self.meta["max_abs_mm"])
+
+    def add(self, tri: np.ndarray, hexp: np.ndarray) -> None:
+        """Append the next models (B, n, 3) mm of both arrays."""
+        batch = {"tri/points": np.asarray(tri), "hex/points": np.asarray(hexp)}
+        b = len(batch["tri/points"])
+        if len(batch["hex/points"]) != b:
+            raise ValueError(f"tri and hex batches differ in models: {b} vs {len(batch['hex/points'])}")
+        if self.start + self.n_written + b > self.stop:
+            raise ValueError(f"shard {self.shard} holds {self.stop - self.start} models; got {self.n_written + b}")
+        if self.n_written % self.chunk:
+            raise ValueError(f"only the last batch may be a partial chunk of {self.chunk} models")
+        for name, x in batch.items():
+            self._check(name, x)
+        for name, x in batch.items():
+            q = quantize_mm(x, self.meta["encoding"])
+            for i in range(0, b, self.chunk):
+                c = q[i : i + self.chunk]
+                if len(c) < self.chunk:  # the array's boundary chunk: zarr stores it whole, fill value 0
+                    c = np.concatenate([c, np.zeros((self.chunk - len(c), *c.shape[1:]), np.float32)])
+                t0 = time.process_time()
+                data = self._codec.encode(np.ascontiguousarray(c.transpose(CHUNK_ORDER)))
+                self.encode_cpu_s += time.process_time() - t0
+                slot = (self.n_written + i) // self.chunk
+                self._index[name][slot] = (self._offset[name], len(data))
+                self._files[name].write(data)
+                self._sha[name].update(data)
+                self._offset[name] += len(data)
+        self.n_written += b
+
+    def close(self) -> dict:
+        """Finish the shard (index, rename, weights, sidecar); returns the sidecar record."""
+        if self.start + self.n_written != self.stop:
+            self.abort()
+            raise ValueError(f"shard {self.shard} got {self.n_written} of its {self.stop - self.start} models")
+        objects = {}
+        for name, obj in self.objects.items():
+            index = self._index[name].tobytes()
+            tail = index + np.uint32(google_crc32c.value(index)).astype("<u4").tobytes()
+            self._files[name].write(tail)
+            self._sha[name].update(tail)
+            self._files[name].close()
+            os.replace(self._tmp[name], obj)
+            objects[str(obj.relative_to(self.path))] = {
+                "sha256": self._sha[name].hexdigest(),
+                "bytes": obj.stat().st_size,
+            }
+            self.stored_bytes += obj.stat().st_size
+            if os.environ.get(FAULT_KILL_ENV) == str(self.shard):  # fault injection: die between the two arrays
+                os.kill(os.getpid(), signal.SIGKILL)
+        rw = zarr.open_group(str(self.path), mode="r+")
+        rw["weights"][self.start : self.stop] = weights_of(
+            np.arange(self.start, self.stop), self.meta["n_modes"], self.meta["levels"]
+        )
+        w_obj = _shard_objects(self.path, self.shard)[2]
+        objects[str(w_obj.relative_to(self.path))] = {"sha256": file_sha256(w_obj), "bytes": w_obj.stat().st_size}
+        record = {"shard": self.shard, "models": [self.start, self.stop], "objects": objects}
+        # zarr's LocalStore writes zarr.json through a temporary file and a rename: atomic on POSIX
+        zarr.create_group(str(self.path), path=_sidecar(self.shard), attributes=record, zarr_format=3)
+        return record
+
+    def abort(self) -> None:
+        """Drop what was written (the shard then reads as never written)."""
+        for name, f in self._files.items():
+            f.close()
+            self._tmp[name].unlink(missing_ok=True)
+
+
+def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points: np.ndarray) -> dict:
+    """Write shard ``shard`` whole: tri_points (S, n_tri_nodes, 3), hex_points (S, n_hex_nodes, 3) in mm,
+    S = models in the shard.  Returns the sidecar record (see :class:`ShardWriter`)."""
+    tri, hexp = np.asarray(tri_points), np.asarray(hex_points)
+    root, meta = _open_meta(path)
+    start, stop = shard_range(int(shard), meta["shard_models"], meta["n_models"])
+    for name, x in (("tri/points", tri), ("hex/points", hexp)):
         want = (stop - start, root[name].shape[1], 3)
         if x.shape != want:
             raise ValueError(f"{name} of shard {shard} must have shape {want}, got {x.shape}")
-        lo, hi = float(x.min()), float(x.max())  # NaN propagates; no temporaries on ~1 GB shards
-        if not (np.isfinite(lo) and np.isfinite(hi)):
-            raise ValueError(f"{name} of shard {shard} has non-finite coordinates")
-        if max(-lo, hi) > meta["max_abs_mm"]:
-            raise ValueError(
-                f"{name} of shard {shard} exceeds the store's max_abs_mm={meta['max_abs_mm']} "
-                f"(coordinates span [{lo:.1f}, {hi:.1f}] mm)"
-            )
-    side = p / _sidecar(shard)
-    if side.exists():  # a rewrite is incomplete until its new sidecar lands
-        for f in side.iterdir():
-            f.unlink()
-        side.rmdir()
-    # Start from nothing: zarr reads an existing shard's index even on a full-shard write, so a corrupt
-    # object would fail the rewrite; a job killed inside zarr's atomic write leaves a *.partial file,
-    # which would make the store differ from an uninterrupted run.
-    for obj in _shard_objects(p, shard):
-        obj.unlink(missing_ok=True)
-        if obj.parent.is_dir():
-            for stale in obj.parent.glob(obj.name + ".*.partial"):
-                stale.unlink()
-    order = "F" if meta["encoding"] == "int32-delta" else "C"
-    rw = zarr.open_group(str(p), mode="r+")
-    levels = meta["levels"]
-    rw["weights"][start:stop] = weights_of(np.arange(start, stop), meta["n_modes"], levels)
-    max_err = {}
-    for name, x in arrays.items():
-        arr = rw[name].with_config({"order": order})
-        arr[start:stop] = x
-        if os.environ.get(FAULT_KILL_ENV) == str(shard):  # fault injection: die between the two arrays
-            os.kill(os.getpid(), signal.SIGKILL)
-        if verify:
-            # float32 difference: half the memory traffic; its own rounding (<= 2^-24 |x|) is covered by
-            # the bound's float32 terms
-            diff = np.subtract(root[name][start:stop], x, dtype=np.float32)
-            max_err[name] = float(max(diff.max(), -diff.min()))
-            if max_err[name] > meta["error_bound_mm"]:
-                raise RuntimeError(
-                    f"{name} shard {shard} decodes with error {max_err[name]:.3g} mm > bound "
-                    f"{meta['error_bound_mm']:.3g} mm: the codec chain misbehaves"
-                )
-    record = {
-        "shard": int(shard),
-        "models": [start, stop],
-        "objects": {
-            str(o.relative_to(p)): {"sha256": file_sha256(o), "bytes": o.stat().st_size}
-            for o in _shard_objects(p, shard)
-        },
-        "max_error_mm": max_err,
-    }
-    # zarr's LocalStore writes zarr.json through a temporary file and a rename: atomic on POSIX
-    zarr.create_group(str(p), path=_sidecar(shard), attributes=record, zarr_format=3)
-    return record
+        _check_coordinates(name, shard, x, meta["max_abs_mm"])  # before the writer clears the old shard
+    writer = ShardWriter(path, shard)
+    try:
+        writer.add(tri, hexp)
+    except BaseException:
+        writer.abort()
+        raise
+    return writer.close()
 
 
 # --------------------------------------------------------------------------------------------- read
-@_quiet_numcodecs
 def read_model(path: str | Path, i: int) -> tuple[np.ndarray, np.ndarray]:
     """(tri (n_tri_nodes, 3), hex (n_hex_nodes, 3)) float32 node coordinates in mm of model ``i``."""
     root, meta = _open_meta(path)
@@ -384,7 +482,6 @@ def read_model(path: str | Path, i: int) -> tuple[np.ndarray, np.ndarray]:
     return root["tri/points"][int(i)], root["hex/points"][int(i)]
 
 
-@_quiet_numcodecs
 def read_shard(path: str | Path, shard: int, array: str = "tri/points") -> np.ndarray:
     """Node coordinates (S, n_nodes, 3) float32 mm of all models of ``shard`` from ``array``."""
     if array not in POINT_ARRAYS:
@@ -394,7 +491,6 @@ def read_shard(path: str | Path, shard: int, array: str = "tri/points") -> np.nd
     return root[array][start:stop]
 
 
-@_quiet_numcodecs
 def shard_problems(path: str | Path) -> dict[int, str]:
     """Shards that must be (re)written, with why: no sidecar (never finished, or killed), a missing
     object, or an object whose size or sha256 differs from the one recorded when it was written."""
