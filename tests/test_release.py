@@ -56,7 +56,7 @@ def test_release_is_a_valid_bag_with_the_whole_payload(pristine):
         f"cohort.zarr.part00{k}.tar" for k in (1, 2, 3)
     ]
     assert len([n for n in names if n.startswith("patients/P")]) == 8  # the 8 test patients
-    record = json.loads((pristine / "metadata" / "datacite.json").read_text())
+    record = json.loads((pristine / "metadata" / "files.json").read_text())
     assert record["counts"]["n_models"] == 27 and record["counts"]["n_hex_nodes"] == 23028  # coarse template
     assert {f["key"] for f in record["files"]} == {f"data/{n}" for n in names}
     assert all(f["checksum"].startswith("sha256:") and f["size"] > 0 for f in record["files"])
@@ -64,6 +64,44 @@ def test_release_is_a_valid_bag_with_the_whole_payload(pristine):
     for manifest in ("manifest-sha256.txt", "tagmanifest-sha256.txt"):
         proc = subprocess.run(["sha256sum", "-c", "--quiet", manifest], cwd=pristine, capture_output=True, text=True)
         assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def _validator(schema_path: Path):
+    import jsonschema
+
+    schema = json.loads(schema_path.read_text())
+    cls = jsonschema.validators.validator_for(schema)
+    cls.check_schema(schema)
+    return cls(schema, format_checker=cls.FORMAT_CHECKER)
+
+
+DATACITE_SCHEMA = ROOT / "src" / "spinecohort" / "data" / "datacite-v4.5.json"
+ZENODO_SCHEMA = ROOT / "tests" / "data" / "zenodo-legacy-deposit-v1.0.0.json"
+
+
+def test_datacite_record_validates_against_the_datacite_4_5_schema(pristine):
+    """The official DataCite 4.5 JSON Schema (vendored from the `datacite` package): no error, and a record
+    with the old per-file keys (files, counts) is rejected, as DataCite rejects unknown keys."""
+    record = json.loads((pristine / "metadata" / "datacite.json").read_text())
+    v = _validator(DATACITE_SCHEMA)
+    assert list(v.iter_errors(record)) == []
+    assert record["types"]["resourceTypeGeneral"] == "Dataset" and record["publicationYear"].isdigit()
+    assert "27 models" in record["sizes"]
+    bad = {**record, "files": [{"key": "data/README.md", "size": 1}], "counts": {"n_models": 27}}
+    assert {e.validator for e in v.iter_errors(bad)} == {"additionalProperties"}
+
+
+def test_zenodo_deposit_metadata_validates_against_zenodos_schema(pristine):
+    """Zenodo's own deposit schema (tests/data, from zenodo/zenodo): no error; the same title and version as
+    the DataCite record (the schema has no version key: it is in the notes); a wrong upload type is caught."""
+    record = json.loads((pristine / "metadata" / "zenodo.json").read_text())
+    v = _validator(ZENODO_SCHEMA)
+    assert list(v.iter_errors(record)) == []
+    datacite = json.loads((pristine / "metadata" / "datacite.json").read_text())
+    assert record["title"] == datacite["titles"][0]["title"]
+    assert record["notes"].startswith(f"Version {datacite['version']}. ")
+    assert record["upload_type"] == "dataset" and record["access_right"] == "open"
+    assert [e.validator for e in v.iter_errors({**record, "upload_type": "data set"})] == ["enum"]
 
 
 def _flip_byte(path: Path, offset: int) -> None:
@@ -101,7 +139,7 @@ def test_verify_names_a_truncated_archive(bag, tmp_path):
     with pytest.raises(
         ReleaseError,
         match=rf"data/cohort.zarr.part003.tar: {len(full) // 2} bytes, but "
-        rf"metadata/datacite.json records {len(full)} \(truncated",
+        rf"metadata/files.json records {len(full)} \(truncated",
     ):
         verify_release(bag)
     # the unpacking step on its own: a tar cut inside a member is refused by name, whatever the manifests say

@@ -3,7 +3,9 @@
 Layout of ``results/<release.dir>/`` (docs/release.md)::
 
     bagit.txt  bag-info.txt  manifest-sha256.txt  tagmanifest-sha256.txt
-    metadata/datacite.json                 DataCite-style record for a Zenodo deposit (files, sizes, counts)
+    metadata/datacite.json                 DataCite Metadata Schema 4.5 record (validated against the schema)
+    metadata/zenodo.json                   the same in Zenodo's deposit metadata format (a ``.zenodo.json``)
+    metadata/files.json                    every payload file (key, size, sha256) and the cohort counts
     data/README.md                         for data users: find, read and materialize a model
     data/cohort.zarr.partNNN.tar           the store's files, whole shards per part (uncompressed tar)
     data/cohort.zarr.parts.csv             which shards and model IDs each part holds
@@ -52,6 +54,10 @@ log = logging.getLogger(__name__)
 STORE_NAME = "cohort.zarr"
 PARTS_INDEX = f"{STORE_NAME}.parts.csv"
 DATACITE = "metadata/datacite.json"
+ZENODO = "metadata/zenodo.json"
+FILES_RECORD = "metadata/files.json"
+#: the DataCite Metadata Schema 4.5 as JSON Schema (package data; provenance and licence beside it)
+DATACITE_SCHEMA = "data/datacite-v4.5.json"
 MODEL_INPUTS = "model_inputs"
 RELEASE_JSON = f"{MODEL_INPUTS}/release.json"
 #: 2000-01-01T00:00:00Z: a fixed member mtime (some tools treat 0 as "unknown").
@@ -274,7 +280,7 @@ def payload_layout(
 def release_counts(
     store: str | Path, template_npz: str | Path, *, n_patients: int, n_personalized: int, n_figures: int, hex_type: str
 ) -> dict:
-    """What the release holds, in numbers (recorded in datacite.json, release.json and the README)."""
+    """What the release holds, in numbers (recorded in files.json, datacite.json, release.json and the README)."""
     from spinecohort.store.zarr_store import _open_meta, model_id
 
     with warnings.catch_warnings():  # zarr: "numcodecs codecs are not in the v3 spec" on every parse
@@ -335,11 +341,17 @@ def _parts_index(parts: list[Part], shard_models: int, n_models: int) -> str:
 
 
 def datacite_record(meta: dict, files: list[dict], counts: dict, date: str) -> dict:
-    """DataCite Metadata Schema 4-style JSON (the attributes of a DataCite/Zenodo record) plus the
-    file list (key, size, ``sha256:`` checksum, Zenodo's file-record shape) and the cohort counts."""
+    """DataCite Metadata Schema 4.5 record (JSON, the attributes of a DataCite DOI) of the release.
+
+    ``files`` (key, size, checksum) give only the totals and formats: per-file sizes and checksums live in
+    the bag's manifests and ``metadata/files.json`` (DataCite has no per-file keys).  Validates against
+    the DataCite 4.5 JSON Schema (:func:`validate_datacite`)."""
     creators = []
     for c in meta["creators"]:
         entry = {"name": c["name"], "nameType": "Personal" if "," in c["name"] else "Organizational"}
+        if entry["nameType"] == "Personal":
+            family, given = (part.strip() for part in c["name"].split(",", 1))
+            entry.update(familyName=family, givenName=given)
         if c.get("affiliation"):
             entry["affiliation"] = [{"name": c["affiliation"]}]
         if c.get("orcid"):
@@ -373,23 +385,65 @@ def datacite_record(meta: dict, files: list[dict], counts: dict, date: str) -> d
         ],
         "descriptions": [
             {"description": meta["description"], "descriptionType": "Abstract"},
-            {
-                "description": (
-                    f"{counts['n_models']} virtual models ({counts['n_hex_nodes']} FE nodes and "
-                    f"{counts['n_tri_nodes']} surface vertices each, mm) in a sharded Zarr v3 store "
-                    f"split into {counts['n_parts']} tar parts; {counts['n_patients']} patient "
-                    f"surfaces; {counts['n_personalized']} personalized models. Packaged as a "
-                    f"BagIt bag (RFC 8493); see data/README.md."
-                ),
-                "descriptionType": "TechnicalInfo",
-            },
+            {"description": _technical_info(counts), "descriptionType": "TechnicalInfo"},
         ],
         "subjects": [{"subject": k} for k in meta["keywords"]],
         "sizes": [f"{total} bytes", f"{len(files)} files", f"{counts['n_models']} models"],
         "formats": sorted({_FORMATS.get(Path(f["key"]).suffix, "application/octet-stream") for f in files}),
-        "files": files,
-        "counts": counts,
     }
+
+
+def _technical_info(counts: dict) -> str:
+    return (
+        f"{counts['n_models']} virtual models ({counts['n_hex_nodes']} FE nodes and "
+        f"{counts['n_tri_nodes']} surface vertices each, mm) in a sharded Zarr v3 store (core codecs only) "
+        f"split into {counts['n_parts']} tar parts; {counts['n_patients']} patient "
+        f"surfaces; {counts['n_personalized']} personalized models. Packaged as a "
+        f"BagIt bag (RFC 8493); see data/README.md."
+    )
+
+
+def zenodo_record(meta: dict, counts: dict, date: str) -> dict:
+    """The release in Zenodo's deposit metadata format (the ``metadata`` of a deposit, as in a
+    ``.zenodo.json``): upload type dataset, open access, the licence as Zenodo's lower-case SPDX id.
+    Zenodo's deposit schema has no ``version`` key (its web form does): the version is in ``notes``."""
+    creators = []
+    for c in meta["creators"]:
+        entry = {"name": c["name"]}
+        if c.get("affiliation"):
+            entry["affiliation"] = c["affiliation"]
+        if c.get("orcid"):
+            entry["orcid"] = c["orcid"]
+        creators.append(entry)
+    return {
+        "upload_type": "dataset",
+        "title": meta["title"],
+        "creators": creators,
+        "description": meta["description"],
+        "notes": f"Version {meta['version']}. " + _technical_info(counts),
+        "publication_date": date,
+        "access_right": "open",
+        "license": meta["licence"].lower(),
+        "keywords": list(meta["keywords"]),
+    }
+
+
+def files_record(files: list[dict], counts: dict) -> dict:
+    """Every payload file (key, size in bytes, ``sha256:`` checksum) and the cohort counts: what
+    ``verify`` checks sizes and counts against (the sha256 are also in manifest-sha256.txt)."""
+    return {"files": files, "counts": counts}
+
+
+def validate_datacite(record: dict) -> None:
+    """Raise ReleaseError unless ``record`` validates against the DataCite 4.5 JSON Schema."""
+    import jsonschema
+
+    schema = json.loads(resources.files("spinecohort").joinpath(DATACITE_SCHEMA).read_text(encoding="utf-8"))
+    validator = jsonschema.validators.validator_for(schema)(schema)
+    errors = sorted(validator.iter_errors(record), key=lambda e: list(e.absolute_path))
+    if errors:
+        lines = "; ".join(f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {e.message}" for e in errors[:5])
+        raise ReleaseError(f"{DATACITE} does not validate against the DataCite 4.5 schema: {lines}")
 
 
 _FORMATS = {
@@ -450,7 +504,7 @@ def build_release(
 
     store: the cohort store (must pass ``check_store``).  files: ``payload_layout`` output; generated:
     further payload files given by content (relative path -> bytes).  meta: the ``release`` config block.
-    model_settings: what ``export`` needs besides the files (e.g. the ``fe`` materials), kept in release.json.  counts: model/node counts recorded in datacite.json.  The bag is built in
+    model_settings: what ``export`` needs besides the files (e.g. the ``fe`` materials), kept in release.json.  counts: model/node counts recorded in files.json and datacite.json.  The bag is built in
     ``.<name>.tmp-<pid>`` next to ``out``, verified (unless verify=False), then renamed to ``out``.
     """
     import bagit
@@ -533,8 +587,15 @@ def build_release(
             for k in sorted(entries)
         ]
         (tmp / DATACITE).parent.mkdir()
-        (tmp / DATACITE).write_text(json.dumps(datacite_record(meta, file_list, counts, date), indent=2) + "\n")
-        bag.save()  # rewrites bag-info.txt and the tag manifest, now covering metadata/datacite.json
+        datacite = datacite_record(meta, file_list, counts, date)
+        validate_datacite(datacite)
+        for name, record in (
+            (DATACITE, datacite),
+            (ZENODO, zenodo_record(meta, counts, date)),
+            (FILES_RECORD, files_record(file_list, counts)),
+        ):
+            (tmp / name).write_text(json.dumps(record, indent=2) + "\n")
+        bag.save()  # rewrites bag-info.txt and the tag manifest, now covering metadata/*.json
         _sort_tagmanifest(tmp / "tagmanifest-sha256.txt")
         t_bag = time.perf_counter()
         log.info("bag made (sha256 of %d files) in %.1f s", len(file_list), t_bag - t_payload)
@@ -590,7 +651,7 @@ def verify_release(
     """Check a release bag; raise ReleaseError listing every problem found.
 
     1. BagIt: no file missing, no extra file (payload and tag files), every size as recorded in
-       datacite.json, every sha256 in the manifests (``bagit.Bag.validate``).
+       metadata/files.json, every sha256 in the manifests (``bagit.Bag.validate``).
     2. unpack=True: every archive part unpacks (safely) into a temporary directory under ``workdir``
        (default: the system's), to exactly the members the parts index lists, and the unpacked store
        passes ``check_store`` and reads its first and last model.
@@ -612,18 +673,18 @@ def verify_release(
     problems = [f"{p}: listed in the manifest but missing" for p in sorted(missing)]
     problems += [f"{p}: in the bag but not in manifest-sha256.txt (extra file)" for p in sorted(extra)]
     problems += _tag_problems(bag, root)
-    dc_path = root / DATACITE
+    files_path = root / FILES_RECORD
     record = {}
-    if dc_path.is_file():
+    if files_path.is_file():
         try:
-            record = json.loads(dc_path.read_text())
+            record = json.loads(files_path.read_text())
         except json.JSONDecodeError as exc:
-            problems.append(f"{DATACITE}: not valid JSON ({exc})")
+            problems.append(f"{FILES_RECORD}: not valid JSON ({exc})")
     for f in record.get("files", []):
-        p = root / safe_relpath(f["key"], f"{DATACITE} file key")
+        p = root / safe_relpath(f["key"], f"{FILES_RECORD} file key")
         if p.is_file() and p.stat().st_size != f["size"]:
             problems.append(
-                f"{f['key']}: {p.stat().st_size} bytes, but {DATACITE} records {f['size']} (truncated or replaced)"
+                f"{f['key']}: {p.stat().st_size} bytes, but {FILES_RECORD} records {f['size']} (truncated or replaced)"
             )
     if not problems:
         try:
@@ -669,7 +730,7 @@ def verify_release(
             counts = record.get("counts", {})
             if counts and counts.get("n_models") != n_models:
                 raise ReleaseError(
-                    f"{root}: unpacked store holds {n_models} models, {DATACITE} says {counts.get('n_models')}"
+                    f"{root}: unpacked store holds {n_models} models, {FILES_RECORD} says {counts.get('n_models')}"
                 )
             report.update(parts=len(index), models=int(n_models))
     report["seconds"] = time.perf_counter() - t0
