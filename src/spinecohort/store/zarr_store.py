@@ -164,6 +164,18 @@ def quantize_mm(x: np.ndarray, encoding: str = "float32-q10") -> np.ndarray:
     return (np.rint(np.asarray(x, dtype=np.float64) * scale) / scale).astype(np.float32)
 
 
+def _quantize_into(x: np.ndarray, scratch: np.ndarray, out: np.ndarray, encoding: str) -> np.ndarray:
+    """:func:`quantize_mm` into preallocated buffers (float64 scratch, float32 out, x's shape): the writer
+    reuses them batch after batch, which saves the page faults of fresh ~100 MB temporaries (measured: 3x)."""
+    if encoding == "float32":
+        out[...] = x
+        return out
+    np.multiply(x, float(2**QUANTUM_EXP), out=scratch)
+    np.rint(scratch, out=scratch)
+    # a power-of-two scale of an integer below 2^24: exact in float64 and in the float32 cast
+    return np.multiply(scratch, 2.0**-QUANTUM_EXP, out=out, casting="same_kind")
+
+
 def _blosc_codecs(clevel: int) -> tuple[BloscCodec, Blosc]:
     """The core-spec blosc codec of the point arrays and the identical numcodecs compressor the writer uses."""
     cfg = dict(cname="zstd", clevel=int(clevel), blocksize=BLOSC_BLOCK_BYTES)
@@ -363,6 +375,7 @@ class ShardWriter:
             self._index[name] = np.full((slots, 2), _EMPTY, dtype="<u8")
             self._sha[name] = hashlib.sha256()
             self._offset[name] = 0
+        self._buffers = {}  # per array: (float64 scratch, float32 values) of the largest batch so far
         self.n_written = 0
         self.encode_cpu_s = 0.0  # CPU time in the codec alone (the benchmark's compression floor)
         self.stored_bytes = 0
@@ -400,7 +413,10 @@ class ShardWriter:
         for name, x in batch.items():
             self._check(name, x)
         for name, x in batch.items():
-            q = quantize_mm(x, self.meta["encoding"])
+            bufs = self._buffers.get(name)
+            if bufs is None or len(bufs[0]) < b:
+                bufs = self._buffers[name] = (np.empty(x.shape, np.float64), np.empty(x.shape, np.float32))
+            q = _quantize_into(x, bufs[0][:b], bufs[1][:b], self.meta["encoding"])
             for i in range(0, b, self.chunk):
                 c = q[i : i + self.chunk]
                 if len(c) < self.chunk:  # the array's boundary chunk: zarr stores it whole, fill value 0
