@@ -41,7 +41,6 @@ import string
 import tarfile
 import tempfile
 import time
-import warnings
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path, PurePosixPath
@@ -283,10 +282,8 @@ def release_counts(
     """What the release holds, in numbers (recorded in files.json, datacite.json, release.json and the README)."""
     from spinecohort.store.zarr_store import _open_meta, model_id
 
-    with warnings.catch_warnings():  # zarr: "numcodecs codecs are not in the v3 spec" on every parse
-        warnings.simplefilter("ignore", UserWarning)
-        root, meta = _open_meta(store)
-        n_tri, n_hex = int(root["tri/points"].shape[1]), int(root["hex/points"].shape[1])
+    root, meta = _open_meta(store)
+    n_tri, n_hex = int(root["tri/points"].shape[1]), int(root["hex/points"].shape[1])
     with np.load(template_npz, allow_pickle=False) as z:
         n_hex_elements = int(z["hexes"].shape[0])
     levels = [float(v) for v in meta["levels"]]
