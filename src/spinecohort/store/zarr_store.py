@@ -171,9 +171,10 @@ def _quantize_into(x: np.ndarray, scratch: np.ndarray, out: np.ndarray, encoding
         out[...] = x
         return out
     np.multiply(x, float(2**QUANTUM_EXP), out=scratch)
-    np.rint(scratch, out=scratch)
-    # a power-of-two scale of an integer below 2^24: exact in float64 and in the float32 cast
-    return np.multiply(scratch, 2.0**-QUANTUM_EXP, out=out, casting="same_kind")
+    # rint in float64, cast to float32: an integer below 2^24, exact; then a power-of-two scale, exact too
+    np.rint(scratch, out=out, casting="same_kind")
+    out *= np.float32(2.0**-QUANTUM_EXP)
+    return out
 
 
 def _blosc_codecs(clevel: int) -> tuple[BloscCodec, Blosc]:
@@ -394,12 +395,6 @@ class ShardWriter:
                 for stale in obj.parent.glob(obj.name + ".*.partial"):
                     stale.unlink()
 
-    def _check(self, name: str, x: np.ndarray) -> None:
-        want = (self.n_nodes[name], 3)
-        if x.ndim != 3 or x.shape[1:] != want:
-            raise ValueError(f"{name} of shard {self.shard} must have shape (models, {want[0]}, 3), got {x.shape}")
-        _check_coordinates(name, self.shard, x, self.meta["max_abs_mm"])
-
     def add(self, tri: np.ndarray, hexp: np.ndarray) -> None:
         """Append the next models (B, n, 3) mm of both arrays."""
         batch = {"tri/points": np.asarray(tri), "hex/points": np.asarray(hexp)}
@@ -410,13 +405,18 @@ class ShardWriter:
             raise ValueError(f"shard {self.shard} holds {self.stop - self.start} models; got {self.n_written + b}")
         if self.n_written % self.chunk:
             raise ValueError(f"only the last batch may be a partial chunk of {self.chunk} models")
+        values = {}
         for name, x in batch.items():
-            self._check(name, x)
-        for name, x in batch.items():
+            want = (self.n_nodes[name], 3)
+            if x.ndim != 3 or x.shape[1:] != want:
+                raise ValueError(f"{name} of shard {self.shard} must have shape (models, {want[0]}, 3), got {x.shape}")
             bufs = self._buffers.get(name)
             if bufs is None or len(bufs[0]) < b:
                 bufs = self._buffers[name] = (np.empty(x.shape, np.float64), np.empty(x.shape, np.float32))
-            q = _quantize_into(x, bufs[0][:b], bufs[1][:b], self.meta["encoding"])
+            values[name] = _quantize_into(x, bufs[0][:b], bufs[1][:b], self.meta["encoding"])
+            # checked on the rounded float32 values (half the bytes; NaN and inf survive the rounding)
+            _check_coordinates(name, self.shard, values[name], self.meta["max_abs_mm"])
+        for name, q in values.items():
             for i in range(0, b, self.chunk):
                 c = q[i : i + self.chunk]
                 if len(c) < self.chunk:  # the array's boundary chunk: zarr stores it whole, fill value 0
