@@ -316,8 +316,8 @@ class Platform:
     def on_slider(self, **_) -> None:
         s = self.state
         w = np.array([float(s[f"w_{i}"]) for i in range(self.n_sliders)])
-        if self.selected is not None and np.allclose(w, self.selected_weights, atol=1e-9):
-            return  # set by select(): the stored model is already shown
+        if np.allclose(w, self.selected_weights, atol=1e-9):
+            return  # set by select() (the stored model is shown) or unchanged
         t0 = time.perf_counter()
         try:
             pts = self.data.live_points(w)
@@ -477,12 +477,12 @@ class Platform:
                                 with v.VRow(dense=True, no_gutters=True):
                                     v.VTextField(
                                         v_model=(f"f_{c}_lo",),
-                                        label=f"{c} min [{unit}]",
+                                        label=f"{c} [{unit}] ≥" if unit else f"{c} ≥",
                                         id=f"f_{c}_lo",
                                         **dense,
                                     )
                                     v.VTextField(
-                                        v_model=(f"f_{c}_hi",), label="max", id=f"f_{c}_hi", **dense, classes="ml-1"
+                                        v_model=(f"f_{c}_hi",), label="≤", id=f"f_{c}_hi", **dense, classes="ml-1"
                                     )
                     v.VTextField(
                         v_model=("f_other",),
@@ -669,6 +669,7 @@ class Platform:
                                 size="small",
                                 click=(self.select, "[item.model_id]"),
                                 classes="model-link",
+                                style="text-transform: none",
                             )
         self.layout = layout
 
