@@ -175,6 +175,13 @@ def test_a_release_bag_serves_in_place_and_says_what_is_missing(test_run, tmp_pa
     name, payload = d.model_file("model_00004", "inp")
     ref = open_data(results=test_run / "results", config=test_run / "config" / "config.yaml")
     assert payload == ref.model_file("model_00004", "inp")[1]  # = `export --release` = `export`
+    # the bag has the patients' decks but not the fit table: they are served from the decks
+    assert (
+        d.check_id("P02") == "P02" and d.model_file("P02", "inp")[1] == (bag / "data/personalized/P02.inp").read_bytes()
+    )
+    np.testing.assert_allclose(
+        d.model_points("P02"), ref.model_points("P02"), rtol=0, atol=1e-5
+    )  # printed deck precision
     assert {p: p.stat().st_mtime_ns for p in bag.rglob("*")} == before  # nothing written into the bag
 
 

@@ -47,7 +47,17 @@ TABLE_COLUMNS = (
 )
 #: parameters drawn as live histograms, and shown in the parameter panel
 HISTOGRAMS = ("PI", "PT", "SS", "LL", "PI_minus_LL", "TPA", "GT", "Cobb", "SVA_T1")
-PANEL = (*HISTOGRAMS, "TK_T4T12", "GAP", "GAP_category", "min_sj_after", "invalid_after", "repaired", "distracted")
+PANEL = (
+    *HISTOGRAMS,
+    "TK_T4T12",
+    "GAP",
+    "GAP_assumed_age",
+    "GAP_category",
+    "min_sj_after",
+    "invalid_after",
+    "repaired",
+    "distracted",
+)
 MAX_SLIDERS = 5
 FLAG_CHOICES = ["any", "yes", "no"]
 
@@ -157,7 +167,7 @@ class Platform:
                 if "GAP_category" in d.table.columns
                 else [],
                 "f_kind": "all",
-                "kind_choices": ["all", "virtual", "personalized"],
+                "kind_choices": ["all", *sorted(d.table["kind"].unique().tolist())],
                 "flag_choices": FLAG_CHOICES,
                 "flags": d.flags,
                 "n_match": len(d.table),

@@ -274,6 +274,7 @@ class CohortData:
         self.n_grid = n_models(self.n_modes, self.levels)
         self.virtual = self._read_virtual()
         self.personalization = self._read_personalization()
+        self.deck_only = self._deck_only_patients()
         self.table = self._combined_table()
         self.weights = weight_columns(self.table.columns)
         self.parameters = expand_parameters(self.table.columns)
@@ -293,16 +294,21 @@ class CohortData:
         else:
             self.missing.append("the virtual-cohort table (virtual_cohort.csv): filtering is off")
             return pd.DataFrame({"model_id": pd.Series(dtype=str)})
+        t = t.copy()  # one consolidated block (pandas' CSV reader leaves a wide table fragmented)
+        extra = {"kind": "virtual"}
         if "distraction_mm" in t.columns and "distracted" not in t.columns:
-            t["distracted"] = t["distraction_mm"].to_numpy(float) > 0  # the disc-contact distraction moved it
+            extra["distracted"] = t["distraction_mm"].to_numpy(float) > 0  # the disc-contact distraction moved it
         if "repaired" in t.columns:
-            t["repaired"] = t["repaired"].fillna(False).astype(bool)
-        return t.assign(kind="virtual")
+            extra["repaired"] = t["repaired"].fillna(False).astype(bool)
+        return t.assign(**extra)
 
     def _read_personalization(self) -> pd.DataFrame | None:
         s = self.src
         if s.personalization_csv is None:
-            self.missing.append("personalized/personalization.csv: the patients' fitted models are not listed")
+            self.missing.append(
+                "personalized/personalization.csv (the patients' fitted weights and fit errors): patients are "
+                "listed by their decks in personalized/ only, if any, with their measured parameters"
+            )
             return None
         p = pd.read_csv(s.personalization_csv, dtype={"ID": str})
         if "method" in p.columns:
@@ -312,6 +318,13 @@ class CohortData:
     def _combined_table(self) -> pd.DataFrame:
         """The virtual cohort plus one row per personalized patient model (its achieved parameters, weights
         as ``w<i>``), in one table; ``kind`` tells them apart."""
+        if self.deck_only:  # decks without the fit table: the patients' measured values (not the model's)
+            rows = pd.DataFrame({"model_id": self.deck_only, "kind": "patient deck (measured values)"})
+            if self.src.patient_parameters is not None:
+                m = pd.read_csv(self.src.patient_parameters, dtype={"ID": str}).set_index("ID")
+                cols = [c for c in m.columns if c in self.virtual.columns and c != "model_id"]
+                rows = rows.join(m[cols], on="model_id")
+            return pd.concat([self.virtual, rows], ignore_index=True)
         if self.personalization is None or self.personalization.empty:
             return self.virtual.reset_index(drop=True)
         p = self.personalization
@@ -334,7 +347,17 @@ class CohortData:
 
     @property
     def patient_ids(self) -> set[str]:
-        return set() if self.personalization is None else set(self.personalization["ID"].astype(str))
+        """Patients with a fitted model: the personalization table's, else the decks in ``personalized/``
+        (a release ships the decks without the table)."""
+        if self.personalization is not None:
+            return set(self.personalization["ID"].astype(str))
+        return set(self.deck_only)
+
+    def _deck_only_patients(self) -> list[str]:
+        d = self.src.personalized_dir
+        if self.personalization is not None or d is None:
+            return []
+        return sorted(p.stem for p in d.glob("*.inp") if PATIENT_ID_RE.fullmatch(p.stem))
 
     def units(self) -> dict[str, str]:
         return {c: unit_of(c) for c in self.table.columns}
@@ -373,6 +396,8 @@ class CohortData:
         name = self.check_id(name)
         if name.startswith("model_"):
             return np.asarray(weights_of(int(name[6:]), self.n_modes, self.levels), float)
+        if self.personalization is None:
+            return np.zeros(0)  # a release's deck: its weights are not recorded in the bag
         row = self.personalization[self.personalization["ID"].astype(str) == name].iloc[0]
         return np.array(
             [row[c] for c in sorted((c for c in row.index if re.fullmatch(r"b\d+", c)), key=lambda c: int(c[1:]))],
@@ -393,6 +418,13 @@ class CohortData:
             from spinecohort.fe.models import hex_points_checked
 
             return hex_points_checked(self.template, self.hex_ssm, self.weights_of(name))[0]
+        if self.personalization is None:  # a release's deck: its *NODE block, in the template's node order
+            from spinecohort.fe.abaqus import read_inp_nodes
+
+            ids, xyz = read_inp_nodes(self.src.personalized_dir / f"{name}.inp")
+            if len(ids) != self.template.n_nodes or not np.array_equal(ids, np.arange(1, len(ids) + 1)):
+                raise PlatformError(f"{name}.inp does not have the template's {self.template.n_nodes} nodes")
+            return xyz
         from spinecohort.personalize import personalized_hex
 
         row = self.personalization[self.personalization["ID"].astype(str) == name].iloc[0]
