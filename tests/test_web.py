@@ -283,18 +283,11 @@ def _type(drv, element_id, text):
 
 
 def _canvas_pixels(drv) -> np.ndarray:
-    """The 3D canvas as an (H, W, 3) int array, cropped from a screenshot."""
+    """The 3D canvas as an (H, W, 3) int array (an element screenshot: the page region of the canvas)."""
     from PIL import Image
 
-    canvas = drv.find_element("css selector", "#view-box canvas")
-    r = drv.execute_script(
-        "const r = arguments[0].getBoundingClientRect(); return [r.left, r.top, r.width, r.height, "
-        "window.devicePixelRatio];",
-        canvas,
-    )
-    img = np.asarray(Image.open(io.BytesIO(drv.get_screenshot_as_png())).convert("RGB"), dtype=int)
-    x, y, w, h = (int(round(v * r[4])) for v in r[:4])
-    return img[y + 2 : y + h - 2, x + 2 : x + w - 2]
+    png = drv.find_element("css selector", "#view-box canvas").screenshot_as_png
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)[2:-2, 2:-2]
 
 
 def _drawn_share(px: np.ndarray) -> float:

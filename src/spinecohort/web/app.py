@@ -62,7 +62,7 @@ MAX_SLIDERS = 5
 FLAG_CHOICES = ["any", "yes", "no"]
 
 
-def histogram_svg(hists: dict[str, dict], units: dict[str, str], width: int = 150, height: int = 70) -> str:
+def histogram_svg(hists: dict[str, dict], units: dict[str, str], width: int = 120, height: int = 60) -> str:
     """Small-multiple histograms as one inline SVG: per parameter the whole cohort (grey) and the current
     selection (blue) on the same count axis, so the selection shows as the part of the cohort it is."""
     cols = 3
@@ -589,7 +589,7 @@ class Platform:
                                 v.VBtn("clear", click=(self.set_overlay, "['none']"), size="small", classes="ml-1")
                             html.Div("{{ shown }} {{ overlay_label }}", classes="text-caption", id="shown")
                             with html.Div(style="height: 480px; border: 1px solid #ddd", id="view-box"):
-                                view = vtk_widgets.VtkLocalView(self.scene.window, ref="view")
+                                view = self.view = vtk_widgets.VtkLocalView(self.scene.window, ref="view")
                                 self.ctrl.view_update = view.update
                                 self.ctrl.view_reset_camera = view.reset_camera
                             with v.VRow(dense=True, classes="mt-1"):

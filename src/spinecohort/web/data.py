@@ -1,7 +1,7 @@
 """Data access of the cohort platform: one read-only view of a results folder or of a release bag.
 
 Everything the page shows or offers for download comes through :class:`CohortData`, and every answer is
-computed by the package's own functions: range queries by ``measure.tables.query_models``, decks by
+computed by the package's own functions: range queries by ``measure.tables.query_mask`` (that of ``spinecohort query``), decks by
 ``fe.models.virtual_model`` + ``write_model`` (the bytes ``spinecohort export`` writes), the continuous
 patient model by ``personalize.build_model`` / ``PersonalizationModel.fit``, live shapes by the hex SSM's
 linear formula (``HexSSM.sample``).  Nothing is written into the results or the bag; a model is named only
@@ -78,14 +78,17 @@ def filter_mask(
     flags: dict[str, bool | None] | None = None,
 ) -> np.ndarray:
     """Rows of ``table`` that satisfy every filter: inclusive numeric ``ranges`` (column -> (lo, hi), None =
-    open; NaN never matches; ``query_models`` does the range test), ``categories`` (column -> allowed
+    open; NaN never matches; ``measure.tables.query_mask``, the test of ``spinecohort query``), ``categories`` (column -> allowed
     values; an empty list allows all) and boolean ``flags`` (column -> required value; None = either)."""
-    from spinecohort.measure.tables import query_models
+    from spinecohort.measure.tables import query_mask
 
     keep = np.ones(len(table), bool)
     ranges = {k: v for k, v in (ranges or {}).items() if v != (None, None)}
     if ranges:
-        keep &= table["model_id"].isin(set(query_models(table, ranges))).to_numpy()
+        try:
+            keep &= query_mask(table, ranges)
+        except ValueError as exc:
+            raise PlatformError(str(exc)) from None
     for col, allowed in (categories or {}).items():
         if allowed:
             keep &= table[col].isin(list(allowed)).to_numpy()
