@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+import spinecohort
 from spinecohort.web.app import histogram_svg, parse_more_ranges
 from spinecohort.web.data import (
     PlatformError,
@@ -28,6 +29,7 @@ from spinecohort.web.data import (
 )
 
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
+REPO = Path(spinecohort.__file__).resolve().parents[2]
 
 
 # ------------------------------------------------------------------------------------------ pure logic
@@ -164,6 +166,31 @@ def test_live_shape_is_the_hex_ssm_formula(data):
     w = np.array([0.7, -1.2, 2.5])
     expect = data.hex_ssm.mean + np.einsum("m,mnc->nc", w, data.hex_ssm.fields[:3])
     np.testing.assert_allclose(data.live_points(w), expect, rtol=0, atol=1e-9)
+
+
+def test_table_pages_sort_server_side(data):
+    from spinecohort.web.app import Platform
+
+    page = Platform(data)
+    page.state.sort_by = [{"key": "PI", "order": "desc"}]
+    page.state.per_page = 5
+    page.update_rows()
+    expect = data.table.sort_values("PI", ascending=False)["model_id"].head(5).tolist()
+    assert [r["model_id"] for r in page.state.rows] == expect
+    page.state.f_other = "PT 20:"  # a second page of a filtered table
+    page.apply_filter()
+    assert page.state.n_match == int((data.table["PT"] >= 20).sum())
+
+
+def test_serve_warns_when_listening_beyond_this_machine(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "spinecohort.cli", "serve", "--host", "0.0.0.0", "--results", str(tmp_path / "none")]
+        + ["--config", str(REPO / "config" / "config.yaml")],
+        capture_output=True,
+        text=True,
+    )
+    assert "WARNING: listening on 0.0.0.0 exposes the platform" in proc.stderr
+    assert proc.returncode == 2 and "is not a results folder" in proc.stderr  # and nothing is served
 
 
 def test_a_release_bag_serves_in_place_and_says_what_is_missing(test_run, tmp_path):
@@ -310,7 +337,7 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
             pd.read_csv(test_run / "results" / "virtual_cohort.csv"),
             pd.read_csv(test_run / "results" / "personalized" / "personalization.csv")
             .query("method == 'fit'")
-            .rename(columns={"PI_achieved": "PI"}),
+            .rename(columns={"PI_achieved": "PI", "ID": "model_id", "b1": "w1", "b2": "w2"}),
         ]
     )
     n_all = len(table)
@@ -362,7 +389,25 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     # the store quantizes to 0.001 mm (int32-delta): coordinates agree within that
     assert np.abs(xyz - stored).max() < 1e-3
 
-    # 5. bad input: a message in the page, and the server keeps serving
+    # 5. the mean as a translucent overlay; a bounded zip of the filtered decks and the filtered table as CSV
+    drv.find_element("xpath", "//button[normalize-space()='mean']").click()
+    _wait(lambda: "overlay: the mean model" in drv.find_element("id", "shown").text, 10, "the overlay")
+    _type(drv, "f_other", "w1 3:; w2 3:")
+    sel = table[(table["w1"] >= 3) & (table["w2"] >= 3)]["model_id"].tolist()
+    assert 0 < len(sel) <= 5  # the server's --max-zip
+    _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{len(sel)} of"), 10, "the zip selection")
+    drv.find_element("id", "dl-zip").click()
+    zpath = _wait(lambda: (p := drv.downloads / "spinecohort_decks.zip").is_file() and p, 60, "the zip")
+    time.sleep(0.5)
+    with zipfile.ZipFile(zpath) as z:
+        assert sorted(z.namelist()) == sorted(f"{m}.inp" for m in sel)
+    drv.find_element("id", "dl-csv").click()
+    cpath = _wait(lambda: (p := drv.downloads / "virtual_cohort_selection.csv").is_file() and p, 30, "the CSV")
+    time.sleep(0.5)
+    assert sorted(pd.read_csv(cpath)["model_id"]) == sorted(sel)
+    _type(drv, "f_other", "")
+
+    # 6. bad input: a message in the page, and the server keeps serving
     _type(drv, "model_input", "../../etc/passwd")
     drv.find_element("id", "show").click()
     _wait(lambda: "not a model ID" in drv.find_element("id", "message").text, 10, "the bad-ID message")
@@ -376,6 +421,8 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     _type(drv, "pat_PI", "")
     drv.find_element("id", "find").click()
     _wait(lambda: "continuous model: weights" in drv.find_element("id", "fit-text").text, 60, "the fitted model")
+    nearest = _wait(lambda: drv.find_elements("xpath", "//td[starts-with(normalize-space(), 'd = ')]"), 10, "nearest")
+    assert len(nearest) == 5
     assert server["proc"].poll() is None
 
 

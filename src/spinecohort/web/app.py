@@ -301,6 +301,10 @@ class Platform:
         except PlatformError as exc:
             self.error(exc)
             return
+        except Exception as exc:  # e.g. a model that cannot be repaired: say so, keep serving
+            log.exception("showing %s", name)
+            self.error(PlatformError(f"{name}: {type(exc).__name__}: {exc}"))
+            return
         self.selected = name
         self.selected_weights = np.zeros(self.n_sliders)
         self.selected_weights[: min(len(w), self.n_sliders)] = w[: self.n_sliders]
