@@ -273,6 +273,32 @@ def _personalize(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve(args: argparse.Namespace) -> int:
+    import time
+
+    from spinecohort.web.app import serve
+    from spinecohort.web.data import open_data
+
+    t0 = time.perf_counter()
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(
+            f"spinecohort serve: WARNING: listening on {args.host} exposes the platform to every machine that can "
+            "reach this one: anyone there can browse the data and make the server build and send models (no login, "
+            "no encryption). Use it only on a trusted network, or keep the default 127.0.0.1 and tunnel (ssh -L).",
+            file=sys.stderr,
+        )
+    data = open_data(results=args.results, release=args.release, config=args.config)
+    for m in data.missing:
+        print(f"spinecohort serve: not available: {m}", file=sys.stderr)
+    print(
+        f"serving {len(data.table):,} models from {data.src.origin} on http://{args.host}:{args.port}/ "
+        f"(data loaded in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)",
+        flush=True,
+    )
+    serve(data, host=args.host, port=args.port, max_zip=args.max_zip)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="spinecohort", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -354,6 +380,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     _add_config_args(q)
     q.set_defaults(func=_query)
+
+    sv = sub.add_parser(
+        "serve",
+        help="the cohort platform in the browser: filter, find a patient's model, see it in 3D, download "
+        "(read-only; binds 127.0.0.1 unless --host says otherwise)",
+    )
+    sv.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    sv.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    sv.add_argument("--release", type=Path, help="serve a release bag instead (read in place, never written)")
+    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
+    sv.add_argument("--port", type=int, default=8080)
+    sv.add_argument("--max-zip", type=int, default=25, help="most decks in one zip download (default 25)")
+    sv.set_defaults(func=_serve)
 
     args, extra = parser.parse_known_args(argv)
     if extra and args.command not in ("query", "personalize"):

@@ -207,10 +207,8 @@ def parse_range(text: str, name: str = "range") -> tuple[float | None, float | N
     return bounds
 
 
-def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> list[str]:
-    """Model IDs of the rows whose every named column lies in its inclusive range (NaN never matches)."""
-    if "model_id" not in table.columns:
-        raise ValueError("the table has no model_id column (is it the virtual cohort CSV?)")
+def query_mask(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> np.ndarray:
+    """(rows,) bool: the rows whose every named column lies in its inclusive range (NaN never matches)."""
     keep = np.ones(len(table), bool)
     for col, (lo, hi) in ranges.items():
         if col not in table.columns or not pd.api.types.is_numeric_dtype(table[col]):
@@ -224,4 +222,11 @@ def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, floa
             keep &= v >= lo
         if hi is not None:
             keep &= v <= hi
-    return table.loc[keep, "model_id"].astype(str).tolist()
+    return keep
+
+
+def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> list[str]:
+    """Model IDs of the rows whose every named column lies in its inclusive range (NaN never matches)."""
+    if "model_id" not in table.columns:
+        raise ValueError("the table has no model_id column (is it the virtual cohort CSV?)")
+    return table.loc[query_mask(table, ranges), "model_id"].astype(str).tolist()
