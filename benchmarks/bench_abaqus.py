@@ -23,6 +23,7 @@ from spinecohort.fe.abaqus import (
     substitute_coordinates,
     write_inp,
 )
+from spinecohort.testing import hex_grid
 
 
 def hex_block(n_nodes: int) -> FEModel:
@@ -30,25 +31,8 @@ def hex_block(n_nodes: int) -> FEModel:
     nx = 20
     nz = max(2, round(n_nodes / (nx + 1) ** 2)) - 1
     xs, zs = np.arange(nx + 1.0), np.arange(nz + 1.0)
-    z, y, x = np.meshgrid(zs, xs, xs, indexing="ij")
-    nodes = np.column_stack([x.ravel(), y.ravel(), z.ravel()]) + 0.123456789
-
-    def nid(i, j, k):
-        return (k * (nx + 1) + j) * (nx + 1) + i
-
-    k, j, i = (a.ravel() for a in np.meshgrid(np.arange(nz), np.arange(nx), np.arange(nx), indexing="ij"))
-    hexes = np.column_stack(
-        [
-            nid(i, j, k),
-            nid(i + 1, j, k),
-            nid(i + 1, j + 1, k),
-            nid(i, j + 1, k),
-            nid(i, j, k + 1),
-            nid(i + 1, j, k + 1),
-            nid(i + 1, j + 1, k + 1),
-            nid(i, j + 1, k + 1),
-        ]
-    )
+    nodes, hexes = hex_grid(xs, xs, zs, x_fastest=True)
+    nodes += 0.123456789
     half = len(hexes) // 2
     return FEModel(
         nodes,

@@ -14,39 +14,17 @@ import time
 
 import numpy as np
 import vtk
-from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtk.util.numpy_support import vtk_to_numpy
 
 from spinecohort.mesh import quality as q
 from spinecohort.mesh import repair as r
+from spinecohort.mesh.vtk_mesh import hexahedra
+from spinecohort.testing import hex_grid_node_id, perturbed_cube_grid, unit_cube_grid
 
 
 def grid(n):
-    i = np.arange(n + 1)
-    X = np.stack(np.meshgrid(i, i, i, indexing="ij"), -1).reshape(-1, 3).astype(float)
-    nid = lambda a, b, c: (a * (n + 1) + b) * (n + 1) + c  # noqa: E731
-    a, b, c = (t.ravel() for t in np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"))
-    H = np.stack(
-        [
-            nid(a, b, c),
-            nid(a + 1, b, c),
-            nid(a + 1, b + 1, c),
-            nid(a, b + 1, c),
-            nid(a, b, c + 1),
-            nid(a + 1, b, c + 1),
-            nid(a + 1, b + 1, c + 1),
-            nid(a, b + 1, c + 1),
-        ],
-        1,
-    )
-    return X, H, nid
-
-
-def perturbed(n, seed=0):
-    X, H, _ = grid(n)
-    rng = np.random.default_rng(seed)
-    X += rng.uniform(-0.22, 0.22, X.shape)
-    X[rng.choice(len(X), 30, replace=False)] += rng.normal(0, 1, (30, 3))
-    return X, H
+    X, H = unit_cube_grid(n)
+    return X, H, hex_grid_node_id((n, n, n))
 
 
 def best_of(f, repeats=3):
@@ -59,24 +37,14 @@ def best_of(f, repeats=3):
 
 
 def vtk_filter(X, H):
-    ug = vtk.vtkUnstructuredGrid()
-    pts = vtk.vtkPoints()
-    pts.SetData(numpy_to_vtk(X, deep=True))
-    ug.SetPoints(pts)
-    cells = vtk.vtkCellArray()
-    cells.SetData(
-        numpy_to_vtk(np.arange(0, 8 * len(H) + 1, 8), deep=True, array_type=vtk.VTK_ID_TYPE),
-        numpy_to_vtk(H.ravel().copy(), deep=True, array_type=vtk.VTK_ID_TYPE),
-    )
-    ug.SetCells(vtk.VTK_HEXAHEDRON, cells)
     mq = vtk.vtkMeshQuality()
-    mq.SetInputData(ug)
+    mq.SetInputData(hexahedra(X, H))
     mq.SetHexQualityMeasureToScaledJacobian()
     return mq
 
 
 def bench_check(n):
-    X, H = perturbed(n)
+    X, H = perturbed_cube_grid(n)
     E = len(H)
     print(f"\n== {n}^3 mesh: {E} hexes, {len(X)} nodes ==")
     q.min_scaled_jacobian_nb(X[:8], H[:1] * 0)  # compile outside the timing

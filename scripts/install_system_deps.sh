@@ -2,10 +2,13 @@
 # Install the Debian packages spinecohort needs outside Python (idempotent).
 #   calculix-ccx : the CalculiX solver `ccx` (2.20 on Debian 12), used by spinecohort.fe.calculix to
 #                  check and run the exported .inp decks.
+#   chromium, chromium-driver : a headless browser and its WebDriver, for the tests of the web platform
+#                  (tests/test_web.py drives `spinecohort serve` in a real Chromium; the platform itself needs
+#                  only the user's browser)
 # Usage: sudo scripts/install_system_deps.sh   (does nothing but report when not root)
 set -euo pipefail
 
-PACKAGES=(calculix-ccx)
+PACKAGES=(calculix-ccx chromium chromium-driver)
 
 missing=()
 for pkg in "${PACKAGES[@]}"; do

@@ -19,3 +19,12 @@ def test_input_errors_are_one_line_messages(tmp_path):
     )
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_python_dash_m_spinecohort_is_the_console_script():
+    """`python -m spinecohort` and `python -m spinecohort.cli` expose the same subcommands."""
+    outs = [
+        subprocess.run([sys.executable, "-m", mod, "--help"], capture_output=True, text=True, check=True).stdout
+        for mod in ("spinecohort", "spinecohort.cli")
+    ]
+    assert "check-store" in outs[0] and outs[0].split("\n", 1)[1] == outs[1].split("\n", 1)[1]

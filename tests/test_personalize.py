@@ -1,11 +1,14 @@
 """Personalized models (spinecohort/personalize.py): fits to parameters, projections, FE decks, CLI."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
 from spinecohort.fe.abaqus import read_inp_nodes
+from spinecohort.layout import Layout
 from spinecohort.mesh.quality import scaled_jacobian
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.personalize import (
@@ -99,7 +102,8 @@ def test_projection_of_training_shapes_reproduces_pca_scores(ssm, small_cohort):
 
 def test_pipeline_personalization_table_and_errors(test_run):
     r = test_run / "results"
-    t = pd.read_csv(r / "personalized" / "personalization.csv", dtype={"ID": str})
+    L = Layout(r)
+    t = pd.read_csv(L.personalization_csv, dtype={"ID": str})
     assert len(t) == 16 and set(t["method"]) == {"fit", "projection"}  # 8 patients x 2 methods
     assert {"ID", "method", "b1", "b2", "b3", "PI_target", "PI_achieved", "PI_error", "dist_mean_mm"} <= set(t.columns)
     fit, proj = t[t.method == "fit"], t[t.method == "projection"]
@@ -112,18 +116,19 @@ def test_pipeline_personalization_table_and_errors(test_run):
     # (b = 0 lies in the box); its parameters are off by the truncated modes and the GPA posture
     assert proj.dist_mean_mm.mean() < fit.dist_mean_mm.mean()
     assert (proj[[f"{p}_error" for p in CORE_PARAMETERS]].abs().max(axis=1) < 25).all()
-    report = (r / "personalized" / "report.md").read_text()
+    report = Path(L.personalization_report).read_text()
     assert "| PI | deg |" in report and "after repair 0" in report
-    patients = pd.read_excel(r / "Descriptive_List.xlsx", sheet_name="Patients")
+    patients = pd.read_excel(L.descriptive_list, sheet_name="Patients")
     assert {"pers_fit_b1 [SD]", "pers_fit_PI_error [deg]", "pers_proj_dist_mean [mm]"} <= set(patients.columns)
 
 
 def test_pipeline_personalized_decks_have_no_inverted_hexes(test_run):
     r = test_run / "results"
-    template = HexTemplate.load(r / "template" / "template.npz")
-    decks = sorted((r / "personalized").glob("P*.inp"))
+    L = Layout(r)
+    template = HexTemplate.load(L.template)
+    decks = sorted(Path(L.personalized_dir).glob("P*.inp"))
     assert [d.stem for d in decks] == [f"P{i:02d}" for i in range(1, 9)]
-    t = pd.read_csv(r / "personalized" / "personalization.csv", dtype={"ID": str}).set_index(["ID", "method"])
+    t = pd.read_csv(L.personalization_csv, dtype={"ID": str}).set_index(["ID", "method"])
     for deck in decks[:3]:  # reading a deck back: ~0.3 s each
         _, nodes = read_inp_nodes(deck)
         sj = scaled_jacobian(nodes[: template.n_hex_nodes], template.hexes)
@@ -137,7 +142,7 @@ def test_cli_personalize(test_run, tmp_path, capsys):
     cfg = yaml.safe_load((test_run / "config" / "config.yaml").read_text())
     results = test_run / cfg["results"]
     # targets of a plausible model (the SSM mean's own parameters, shifted a little)
-    t = pd.read_csv(results / "personalized" / "personalization.csv").query("method == 'projection'")
+    t = pd.read_csv(Layout(results).personalization_csv).query("method == 'projection'")
     pi, pt, ll = (float(t[f"{p}_achieved"].median()) for p in ("PI", "PT", "LL"))
     out = tmp_path / "model.inp"
     args = [
@@ -161,7 +166,7 @@ def test_cli_personalize(test_run, tmp_path, capsys):
     assert float(rows["SS"][1]) == pytest.approx(pi - pt, abs=0.01)  # derived from PI = PT + SS
     assert abs(float(rows["PI"][3])) < 0.01
     _, nodes = read_inp_nodes(out)
-    template = HexTemplate.load(results / "template" / "template.npz")
+    template = HexTemplate.load(Layout(results).template)
     assert scaled_jacobian(nodes[: template.n_hex_nodes], template.hexes).min() > 0
     assert (
         main(

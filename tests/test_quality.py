@@ -3,55 +3,16 @@
 import numpy as np
 import pytest
 import vtk
-from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtk.util.numpy_support import vtk_to_numpy
 
 from spinecohort.mesh import quality as q
-
-
-def structured_grid(n: int, h: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """n^3 unit hexes of edge h in VTK order; node (i, j, k) has id (i*(n+1) + j)*(n+1) + k."""
-    i = np.arange(n + 1)
-    X = np.stack(np.meshgrid(i, i, i, indexing="ij"), -1).reshape(-1, 3) * h
-    nid = lambda a, b, c: (a * (n + 1) + b) * (n + 1) + c  # noqa: E731
-    a, b, c = (t.ravel() for t in np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"))
-    H = np.stack(
-        [
-            nid(a, b, c),
-            nid(a + 1, b, c),
-            nid(a + 1, b + 1, c),
-            nid(a, b + 1, c),
-            nid(a, b, c + 1),
-            nid(a + 1, b, c + 1),
-            nid(a + 1, b + 1, c + 1),
-            nid(a, b + 1, c + 1),
-        ],
-        1,
-    )
-    return X.astype(float), H
-
-
-def perturbed_grid(n=10, seed=0):
-    """Nodes jittered by U(+-0.22 h) plus 30 nodes kicked by N(0, h): a few dozen inverted elements."""
-    X, H = structured_grid(n)
-    rng = np.random.default_rng(seed)
-    X = X + rng.uniform(-0.22, 0.22, X.shape)
-    X[rng.choice(len(X), 30, replace=False)] += rng.normal(0.0, 1.0, (30, 3))
-    return X, H
+from spinecohort.mesh.vtk_mesh import hexahedra
+from spinecohort.testing import perturbed_cube_grid, unit_cube_grid
 
 
 def vtk_quality(X, H, measure):
-    ug = vtk.vtkUnstructuredGrid()
-    pts = vtk.vtkPoints()
-    pts.SetData(numpy_to_vtk(np.ascontiguousarray(X), deep=True))
-    ug.SetPoints(pts)
-    cells = vtk.vtkCellArray()
-    cells.SetData(
-        numpy_to_vtk(np.arange(0, 8 * len(H) + 1, 8), deep=True, array_type=vtk.VTK_ID_TYPE),
-        numpy_to_vtk(H.ravel().copy(), deep=True, array_type=vtk.VTK_ID_TYPE),
-    )
-    ug.SetCells(vtk.VTK_HEXAHEDRON, cells)
     mq = vtk.vtkMeshQuality()
-    mq.SetInputData(ug)
+    mq.SetInputData(hexahedra(X, H))
     getattr(mq, "SetHexQualityMeasureTo" + measure)()
     mq.Update()
     return vtk_to_numpy(mq.GetOutput().GetCellData().GetArray("Quality")).copy()
@@ -70,7 +31,7 @@ def dense_min_detj(P, n=41):
 
 # ---------------------------------------------------------------------------------------------------------
 def test_matches_vtk_on_perturbed_grid_with_inverted_elements():
-    X, H = perturbed_grid()
+    X, H = perturbed_cube_grid()
     sj = q.scaled_jacobian(X, H)
     sj_vtk = vtk_quality(X, H, "ScaledJacobian")
     # same formula as Verdict: only round-off differs (measured 6e-16)
@@ -155,7 +116,7 @@ def test_certificate_catches_fold_hidden_from_corners_and_centre():
 
 
 def test_bernstein_coefficients_bound_det_j_and_hit_corners():
-    X, H = perturbed_grid(4, seed=3)
+    X, H = perturbed_cube_grid(4, seed=3)
     c = q.bernstein_coefficients(X, H).reshape(len(H), 27)
     corners = c[:, [0, 18, 24, 6, 2, 20, 26, 8]]  # (u, v, w) index 9u + 3v + w in VTK corner order
     assert np.abs(corners - q.corner_jacobians(X, H)).max() < 1e-12
@@ -192,7 +153,7 @@ def test_certificate_agrees_with_dense_grid_on_undecided_elements():
 
 
 def test_certificate_on_grid_marks_every_corner_inverted_element():
-    X, H = perturbed_grid()
+    X, H = perturbed_cube_grid()
     cert = q.certify_valid(X, H)
     sj = q.scaled_jacobian(X, H)
     assert np.all(cert[sj <= 0] == -1)
@@ -200,7 +161,7 @@ def test_certificate_on_grid_marks_every_corner_inverted_element():
 
 
 def test_batched_equals_per_sample():
-    X, H = perturbed_grid(6, seed=1)
+    X, H = perturbed_cube_grid(6, seed=1)
     rng = np.random.default_rng(2)
     batch = np.stack([X, X + rng.normal(0, 0.1, X.shape), 3.0 * X])
     mb = q.hex_quality_metrics(batch, H)
@@ -213,7 +174,7 @@ def test_batched_equals_per_sample():
 
 
 def test_numba_full_metrics_equal_numpy():
-    X, H = perturbed_grid(8, seed=4)
+    X, H = perturbed_cube_grid(8, seed=4)
     m = q.hex_quality_metrics(X, H, certify=False)
     for k, f in [
         ("scaled_jacobian", q.scaled_jacobian),
@@ -229,7 +190,7 @@ def test_numba_full_metrics_equal_numpy():
 
 
 def test_fused_morph_check_equals_morph_then_check():
-    X, H = structured_grid(5)
+    X, H = unit_cube_grid(5)
     rng = np.random.default_rng(5)
     modes = rng.normal(0, 0.15, (3, len(X), 3))
     w = rng.uniform(-3, 3, (4, 3))

@@ -5,33 +5,19 @@ import pytest
 
 from spinecohort.mesh import quality as q
 from spinecohort.mesh import repair as r
+from spinecohort.testing import hex_grid_node_id, unit_cube_grid
 
 N = 10  # elements per side
 M = N + 1  # nodes per side
 
 
-def nid(i, j, k):
-    return (i * M + j) * M + k
+nid = hex_grid_node_id((N, N, N))
 
 
 def reference_mesh():
     """Graded, sheared and bent 10^3 hex block: a valid, non-trivial 'mean mesh' (min sJ 0.80)."""
-    i = np.arange(M)
-    I, J, K = (t.ravel() for t in np.meshgrid(i, i, i, indexing="ij"))
-    a, b, c = (t.ravel() for t in np.meshgrid(np.arange(N), np.arange(N), np.arange(N), indexing="ij"))
-    H = np.stack(
-        [
-            nid(a, b, c),
-            nid(a + 1, b, c),
-            nid(a + 1, b + 1, c),
-            nid(a, b + 1, c),
-            nid(a, b, c + 1),
-            nid(a + 1, b, c + 1),
-            nid(a + 1, b + 1, c + 1),
-            nid(a, b + 1, c + 1),
-        ],
-        1,
-    )
+    IJK, H = unit_cube_grid(N)
+    I, J, K = IJK.T.astype(np.int64)
     g = np.cumsum(np.r_[0.0, 1.1 ** np.arange(N)])
     x = g[I] / g[-1] * N  # graded spacing, ratio 1.1
     y = J + 0.04 * x**2  # curved shear

@@ -10,6 +10,8 @@ import pandas as pd
 import pytest
 import yaml
 
+from spinecohort.layout import Layout
+
 ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
@@ -29,14 +31,15 @@ def run(workdir, *args):
 
 def test_dag_produces_every_stage_output(test_run):
     r = test_run / "results"
+    L = Layout(r)
     assert len(list((r / "synthetic_cohort").glob("P*.stl"))) == 8
-    with np.load(r / "ssm" / "ssm.npz") as z:
+    with np.load(L.ssm) as z:
         assert z["eigenvalues"].shape == (7,)  # 8 patients -> 7 modes
         n = int(z["modes_for_threshold"])
-    comp = pd.read_csv(r / "ssm" / "compactness.csv")
+    comp = pd.read_csv(L.compactness_csv)
     assert comp["cumulative_variance"].iloc[-1] == pytest.approx(1.0)
     assert comp["cumulative_variance"].iloc[n - 1] >= 0.95 > (comp["cumulative_variance"].iloc[n - 2] if n > 1 else 0)
-    q = pd.read_csv(r / "ssm" / "quality.csv")
+    q = pd.read_csv(L.ssm_quality_csv)
     assert list(q.columns) == [
         "modes",
         "generalization_mm",
@@ -48,33 +51,33 @@ def test_dag_produces_every_stage_output(test_run):
         data = (r / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, png
     # patients measured through the STL round trip recover the generator's truth (float32 storage: 1e-4)
-    comp = pd.read_csv(r / "patients" / "sheet_vs_measured.csv").set_index("parameter")
+    comp = pd.read_csv(L.sheet_vs_measured).set_index("parameter")
     assert comp.loc[["PI", "PT", "SS", "LL", "TPA", "GT", "Cobb", "DH_L4-L5"], "max_abs_diff"].max() < 1e-4
-    sheets = pd.read_excel(r / "Descriptive_List.xlsx", sheet_name=None)
+    sheets = pd.read_excel(L.descriptive_list, sheet_name=None)
     assert list(sheets) == ["Virtual cohort", "Patients", "Notes"] and len(sheets["Patients"]) == 8
     # the virtual cohort: 3 modes x 3 levels = 27 models in 3 shards of 9, each measured and quality-checked
     virtual = sheets["Virtual cohort"]
     assert len(virtual) == 27 and virtual["model_id"].iloc[13] == "model_00013"
     assert {"w1", "w3", "PI [deg]", "GAP_assumed_age [points]", "min_sj_after", "invalid_after"} <= set(virtual.columns)
     assert (virtual.loc[13, ["w1", "w2", "w3"]] == 0).all()
-    twin = pd.read_parquet(r / "virtual_cohort.parquet")
+    twin = pd.read_parquet(L.virtual_cohort_parquet)
     assert twin["model_id"].tolist() == virtual["model_id"].tolist() and twin["invalid_after"].dtype.kind == "i"
     # a model keeps inverted hexes only where its repair failed (and the shard's quality table says so)
     assert ((virtual["invalid_after"] > 0) <= (virtual["invalid_before"] > 0)).all()
     assert (virtual.loc[virtual["repaired"], "min_sj_after"] > 0).all()
     from spinecohort.store.zarr_store import check_store
 
-    assert check_store(r / "cohort.zarr") == []
+    assert check_store(L.store) == []
     assert {"ID", "age", "PI [deg]", "LDI [%]", "DH_L4-L5 [mm]", "GAP [points]"} <= set(sheets["Patients"].columns)
-    morph = pd.read_csv(r / "template" / "morph_report.csv")
+    morph = pd.read_csv(L.morph_report)
     assert len(morph) == 18 and (morph["distance_final_mean_mm"] < 0.04).all()  # the seed's bound
-    transfer = pd.read_csv(r / "template" / "transfer_report.csv")
+    transfer = pd.read_csv(L.transfer_report)
     linear = transfer[transfer["disc_contact"] == "none"].set_index("method")
     assert linear.loc["smooth", "inverted_element_fraction"] < linear.loc["nearest", "inverted_element_fraction"] / 10
     # with the disc-contact distraction (1 mm), no model of the test grid has an inverted hex before repair
     contact = transfer[transfer["disc_contact"] != "none"].set_index("method")
     assert contact.loc["smooth", "models_with_inverted"] == 0 and contact.loc["smooth", "min_scaled_jacobian"] > 0
-    deck = (r / "template" / "Mean_Model (Template).inp").read_text()
+    deck = Path(L.template_deck).read_text()
     assert deck.count("*ELEMENT, TYPE=C3D8") == 1 and "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck
     for rule in (
         "synthetic_cohort",
@@ -92,7 +95,7 @@ def test_dag_produces_every_stage_output(test_run):
         "init_store",
     ):
         assert (test_run / "logs" / f"{rule}.log").exists()
-        assert (r / "benchmarks" / f"{rule}.tsv").exists()
+        assert Path(L.benchmark(rule)).exists()
 
 
 def test_nothing_to_do_on_rerun(test_run):

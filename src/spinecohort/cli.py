@@ -9,6 +9,26 @@ from pathlib import Path
 
 import numpy as np
 
+from spinecohort.layout import Layout
+
+DEFAULT_CONFIG = Path("config/config.yaml")
+
+
+def _add_config_args(parser: argparse.ArgumentParser) -> None:
+    """--config and --results, shared by every command that reads a pipeline's results."""
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="pipeline config (default: %(default)s)")
+    parser.add_argument("--results", type=Path, help="results folder (default: the config's)")
+
+
+def _config_and_layout(args: argparse.Namespace) -> tuple[dict, Layout]:
+    """The config (validated keys are the pipeline's business; the CLI reads what it needs) and the results tree."""
+    import yaml
+
+    if not Path(args.config).is_file():
+        raise ValueError(f"{args.config} does not exist; pass --config (the pipeline's config.yaml)")
+    cfg = yaml.safe_load(Path(args.config).read_text())
+    return cfg, Layout(args.results or cfg["results"])
+
 
 def _generate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
@@ -60,8 +80,6 @@ def _ssm_info(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    import yaml
-
     from spinecohort.cohort.loading import load_cohort_npz
     from spinecohort.fe.models import virtual_model, write_model
     from spinecohort.mesh.hex_ssm import HexSSM
@@ -75,16 +93,11 @@ def _export(args: argparse.Namespace) -> int:
         grid, hex_type = src["grid"], src["hex_type"]
         faces = lambda: np.load(src["faces"], allow_pickle=False)  # noqa: E731
     else:
-        cfg = yaml.safe_load(Path(args.config).read_text())
-        r = Path(args.results or cfg["results"])
+        cfg, layout = _config_and_layout(args)
         grid, hex_type = cfg["grid"], cfg["template"]["hex_type"]
         fe_cfg = cfg.get("fe")  # materials of the deck (None: the defaults, equal to config/config.yaml)
-        src = {
-            "ssm": r / "ssm" / "ssm.npz",
-            "hex_ssm": r / "template" / "hex_ssm.npz",
-            "template": r / "template" / "template.npz",
-        }
-        faces = lambda: load_cohort_npz(r / "cohort" / "cohort.npz").faces  # noqa: E731
+        src = {"ssm": layout.ssm, "hex_ssm": layout.hex_ssm, "template": layout.template}
+        faces = lambda: load_cohort_npz(layout.cohort).faces  # noqa: E731
     template = HexTemplate.load(src["template"])
     vm = virtual_model(
         args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]), template, grid["n_modes"], grid["levels"]
@@ -153,21 +166,21 @@ def _check_store(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
-    records = args.records or Path(args.store).parent / "shards"
+    results = Layout(Path(args.store).parent)
+    records = args.records or Path(results.path("shards"))
     for shard in sorted(problems):
         invalidate_shard(args.store, shard)
         for f in sorted(Path(records).glob(f"{shard:05d}.*")):  # sample record, quality, parameters
             f.unlink()
     # the store-wide check (results/store_check.csv) is stale too; without it Snakemake sees the missing
     # shard records as removed intermediates and would not rerun them
-    Path(args.store).parent.joinpath("store_check.csv").unlink(missing_ok=True)
+    Path(results.store_check).unlink(missing_ok=True)
     print(f"invalidated {len(problems)} shard(s) and their records in {records}: run snakemake to rebuild them")
     return 0
 
 
 def _query(args: argparse.Namespace) -> int:
     import pandas as pd
-    import yaml
 
     from spinecohort.measure.tables import parse_range, query_models
 
@@ -175,8 +188,8 @@ def _query(args: argparse.Namespace) -> int:
     if len(filters) % 2 or not all(f.startswith("--") for f in filters[::2]):
         raise ValueError(f"query filters must be pairs '--PARAM lo:hi', got {' '.join(filters)}")
     ranges = {k[2:]: parse_range(v, k[2:]) for k, v in zip(filters[::2], filters[1::2])}
-    r = Path(args.results) if args.results else Path(yaml.safe_load(Path(args.config).read_text())["results"])
-    csv = r / "virtual_cohort.csv"
+    layout = Layout(args.results) if args.results else _config_and_layout(args)[1]  # --results needs no config
+    csv = Path(layout.virtual_cohort_csv)
     if not csv.is_file():
         raise ValueError(f"{csv} does not exist; run the pipeline (snakemake) first")
     ids = query_models(pd.read_csv(csv), ranges)
@@ -186,8 +199,6 @@ def _query(args: argparse.Namespace) -> int:
 
 
 def _personalize(args: argparse.Namespace) -> int:
-    import yaml
-
     from spinecohort.cohort.loading import load_cohort_npz
     from spinecohort.measure.spinopelvic import UNITS
     from spinecohort.personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
@@ -205,17 +216,16 @@ def _personalize(args: argparse.Namespace) -> int:
         except ValueError:
             raise ValueError(f"target {k} must be a number (deg / mm), got '{v}'") from None
     targets = complete_pelvic_targets(targets, source="command line")
-    cfg = yaml.safe_load(Path(args.config).read_text())
-    r = Path(args.results or cfg["results"])
+    cfg, layout = _config_and_layout(args)
     settings = Settings.from_config(cfg["personalize"], cfg["grid"]["n_modes"])
     settings.parameters += [p for p in targets if p not in settings.parameters]  # weight 1 per deg / mm
     m = cfg["measure"]
-    for f in (r / "ssm" / "ssm.npz", r / "cohort" / "cohort.npz"):
+    for f in (Path(layout.ssm), Path(layout.cohort)):
         if not f.is_file():
             raise ValueError(f"{f} does not exist; run the pipeline (snakemake) up to the SSM first")
     model = build_model(
-        SSM.load(r / "ssm" / "ssm.npz"),
-        load_cohort_npz(r / "cohort" / "cohort.npz").landmarks,
+        SSM.load(layout.ssm),
+        load_cohort_npz(layout.cohort).landmarks,
         settings,
         {"vertical": m["vertical_axis"], "c7_proxy": m["c7_proxy"]},
     )
@@ -234,10 +244,10 @@ def _personalize(args: argparse.Namespace) -> int:
         from spinecohort.mesh.hex_ssm import HexSSM
         from spinecohort.mesh.template import HexTemplate
 
-        template = HexTemplate.load(r / "template" / "template.npz")
+        template = HexTemplate.load(layout.template)
         pts, rep = personalized_hex(
             template,
-            HexSSM.load(r / "template" / "hex_ssm.npz"),
+            HexSSM.load(layout.hex_ssm),
             res.weights,
             res.posture_deg,
             name="personalized model",
@@ -260,6 +270,32 @@ def _personalize(args: argparse.Namespace) -> int:
         else:
             raise ValueError(f"--out {args.out}: use a .inp or .vtu file name")
         print(f"-> {args.out}; Jacobian check: { {k: v for k, v in rep.items() if k != 'level_offsets_mm'} }")
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import time
+
+    from spinecohort.web.app import serve
+    from spinecohort.web.data import open_data
+
+    t0 = time.perf_counter()
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(
+            f"spinecohort serve: WARNING: listening on {args.host} exposes the platform to every machine that can "
+            "reach this one: anyone there can browse the data and make the server build and send models (no login, "
+            "no encryption). Use it only on a trusted network, or keep the default 127.0.0.1 and tunnel (ssh -L).",
+            file=sys.stderr,
+        )
+    data = open_data(results=args.results, release=args.release, config=args.config)
+    for m in data.missing:
+        print(f"spinecohort serve: not available: {m}", file=sys.stderr)
+    print(
+        f"serving {len(data.table):,} models from {data.src.origin} on http://{args.host}:{args.port}/ "
+        f"(data loaded in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)",
+        flush=True,
+    )
+    serve(data, host=args.host, port=args.port, max_zip=args.max_zip)
     return 0
 
 
@@ -291,8 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("model_id", help="model_08403 or 8403")
     e.add_argument("--format", choices=["inp", "stl", "vtu"], default="inp")
     e.add_argument("--out", type=Path)
-    e.add_argument("--config", type=Path, default=Path("config/config.yaml"))
-    e.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    _add_config_args(e)
     e.add_argument(
         "--release",
         type=Path,
@@ -325,8 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         "--PT 28 --LL 30 [--out model.inp] (deg / mm; any measured parameter)",
     )
     pz.add_argument("--out", type=Path, help="write the hex FE model (.inp or .vtu), Jacobian-checked and repaired")
-    pz.add_argument("--config", type=Path, default=Path("config/config.yaml"))
-    pz.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    _add_config_args(pz)
     pz.set_defaults(func=_personalize)
 
     cs = sub.add_parser(
@@ -344,9 +378,21 @@ def main(argv: list[str] | None = None) -> int:
         help="model IDs of the virtual cohort with parameters in ranges, "
         "e.g. query --PI 50:60 --PT 25: (bounds inclusive, deg / mm)",
     )
-    q.add_argument("--config", type=Path, default=Path("config/config.yaml"))
-    q.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    _add_config_args(q)
     q.set_defaults(func=_query)
+
+    sv = sub.add_parser(
+        "serve",
+        help="the cohort platform in the browser: filter, find a patient's model, see it in 3D, download "
+        "(read-only; binds 127.0.0.1 unless --host says otherwise)",
+    )
+    sv.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    sv.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    sv.add_argument("--release", type=Path, help="serve a release bag instead (read in place, never written)")
+    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
+    sv.add_argument("--port", type=int, default=8080)
+    sv.add_argument("--max-zip", type=int, default=25, help="most decks in one zip download (default 25)")
+    sv.set_defaults(func=_serve)
 
     args, extra = parser.parse_known_args(argv)
     if extra and args.command not in ("query", "personalize"):

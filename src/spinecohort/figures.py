@@ -67,13 +67,6 @@ def quality_plot(gen: pd.DataFrame, spec: pd.DataFrame, path: str | Path) -> Non
     plt.close(fig)
 
 
-def _polydata(points: np.ndarray, faces: np.ndarray):
-    import pyvista as pv
-
-    cells = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
-    return pv.PolyData(points, cells)
-
-
 def mode_variation_figure(
     ssm: SSM,
     faces: np.ndarray,
@@ -87,6 +80,8 @@ def mode_variation_figure(
     (columns), coloured by the distance to the mean (mm), one camera and one colour scale for all panels so
     that shapes and colours compare; a PNG of exactly ``window`` = (width, height) pixels."""
     import pyvista as pv
+
+    from spinecohort.mesh.vtk_mesh import surface
 
     pv.OFF_SCREEN = True
     n_modes = min(n_modes, ssm.n_modes)
@@ -105,7 +100,7 @@ def mode_variation_figure(
     focal, scale = _framing(shapes, "lateral", panel, margin=1.03)
     pl = pv.Plotter(off_screen=True, window_size=list(panel))
     pl.set_background(BACKGROUND)
-    mesh = _polydata(shapes[0], faces)
+    mesh = surface(shapes[0], faces)
     mesh["distance to mean [mm]"] = dist[0]
     pl.add_mesh(
         mesh,
@@ -314,6 +309,8 @@ def render_hex_model(
     """
     import pyvista as pv
 
+    from spinecohort.mesh.vtk_mesh import polylines, surface
+
     pv.OFF_SCREEN = True
     points = np.asarray(points, dtype=np.float64)
     axis = 0 if view == "lateral" else 1
@@ -333,7 +330,7 @@ def render_hex_model(
     rgb = np.array([matplotlib.colors.to_rgb(HEX_PART_STYLE[t][1]) for t in HEX_PART_STYLE])
     tissue_index = {t: i for i, t in enumerate(HEX_PART_STYLE)}
     face_rgb = (255 * rgb[np.array([tissue_index[t] for t in tissue])[owner]]).astype(np.uint8)
-    column = pv.PolyData(points, np.hstack([np.full((len(faces), 1), 4), faces]).ravel())
+    column = surface(points, faces)
     column.cell_data["rgb"] = face_rgb
 
     pl = pv.Plotter(off_screen=True, window_size=[int(size_px[0]), int(size_px[1])])
@@ -350,7 +347,7 @@ def render_hex_model(
         specular=0.0,
     )
     if len(tris):
-        surf = pv.PolyData(points, np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
+        surf = surface(points, tris)
         pl.add_mesh(surf, color=SURFACE_STYLE[1], ambient=0.3, diffuse=0.7, specular=0.0, smooth_shading=True)
     if ligaments and len(ligs):
         # lines are drawn unlit (exact group colour). The lateral whole-model view draws them on an overlay
@@ -372,7 +369,7 @@ def render_hex_model(
         for g, (_, colour) in LIGAMENT_STYLE.items():
             sel = ligs[group == g]
             if len(sel):
-                lines = pv.PolyData(points + shift, lines=np.hstack([np.full((len(sel), 1), 2), sel]).ravel())
+                lines = polylines(points + shift, sel)
                 actor = pv.Actor(mapper=pv.DataSetMapper(lines))
                 actor.prop.color, actor.prop.line_width, actor.prop.lighting = colour, 4, False
                 target.AddActor(actor)

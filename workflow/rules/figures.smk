@@ -1,7 +1,7 @@
-# Stage 7: figures. Renders (pyvista off-screen) and charts (matplotlib), each a PNG of the pixel size set in
+# Stage 8: figures. Renders (pyvista off-screen) and charts (matplotlib), each a PNG of the pixel size set in
 # config `figures`, registered with report() so that `snakemake --report report.html` shows them by topic.
 # The compactness and generalization/specificity plots are written by the pca and ssm_quality rules; the list of
-# every figure is figure_files() in common.smk (lint: functions live there).
+# every figure is L.figures (spinecohort.layout.FIGURE_NAMES) (lint: functions live there).
 
 
 rule mode_variation_figure:

@@ -1,5 +1,5 @@
 # Stage 3: spinopelvic measurement of the patients, and the Descriptive_List workbook (patients + the
-# virtual cohort of stage 5, gathered from its shards).
+# virtual cohort of stage 6, gathered from its shards).
 
 
 rule measure_patients:

@@ -1,4 +1,4 @@
-# Stage 6: patient-personalized models: mode weights (and posture) fitted to each patient's spinopelvic
+# Stage 7: patient-personalized models: mode weights (and posture) fitted to each patient's spinopelvic
 # parameters, the image-based alternative (projection of the aligned shape), the fit models' .inp decks.
 # personalized_models() (the 42 decks) lives in common.smk: the figures and the release use it too.
 

@@ -1,4 +1,4 @@
-# Stage 6: FE validation. Range of motion of one model under pure moments in CalculiX (lumbar model
+# Stage 9: FE validation. Range of motion of one model under pure moments in CalculiX (lumbar model
 # pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/rom.md).
 
 

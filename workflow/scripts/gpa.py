@@ -1,7 +1,8 @@
 # Adapter: generalized Procrustes alignment of the cohort.
 import numpy as np
 
-from spinecohort.cohort.loading import atomic_path, commit, load_cohort_npz
+from spinecohort.atomic import atomic_write
+from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.logs import to_file
 from spinecohort.ssm.procrustes import procrustes_align
 
@@ -13,8 +14,7 @@ with to_file(snakemake.log[0]):
         tol_mm=snakemake.params.tol_mm,
         max_iter=snakemake.params.max_iter,
     )
-    tmp = atomic_path(snakemake.output[0])
-    with open(tmp, "wb") as fh:
+    with atomic_write(snakemake.output[0]) as tmp, open(tmp, "wb") as fh:
         np.savez(
             fh,
             ids=np.array(cohort.ids),
@@ -25,4 +25,3 @@ with to_file(snakemake.log[0]):
             translations=res.translations,
             mean_change_mm=np.array(res.mean_change_mm),
         )
-    commit(tmp, snakemake.output[0])

@@ -1,7 +1,7 @@
 # Adapter: PCA of the aligned shapes, compactness table and plot.
 import numpy as np
 
-from spinecohort.cohort.loading import atomic_path, commit
+from spinecohort.atomic import atomic_write
 from spinecohort.figures import compactness_plot
 from spinecohort.logs import to_file
 from spinecohort.ssm.model import build_ssm
@@ -20,10 +20,8 @@ with to_file(snakemake.log[0]) as log:
         100 * ssm.cumulative_variance[n - 1],
         np.round(100 * ssm.explained_variance_ratio[:5], 1),
     )
-    tmp = atomic_path(snakemake.output.ssm)
-    with open(tmp, "wb") as fh:
+    with atomic_write(snakemake.output.ssm) as tmp, open(tmp, "wb") as fh:
         ssm.save(fh, modes_for_threshold=n, variance_threshold=threshold)
-    commit(tmp, snakemake.output.ssm)
     table = compactness_table(ssm)
     table.to_csv(snakemake.output.table, index=False)
     compactness_plot(table, threshold, snakemake.output.figure)

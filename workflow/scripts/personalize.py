@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.cohort.loading import atomic_path, commit, load_cohort_npz
+from spinecohort.atomic import atomic_write
+from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.fe.abaqus import write_inp
 from spinecohort.fe.export import fe_model, materials_from_config
 from spinecohort.logs import to_file
@@ -64,9 +65,8 @@ with to_file(snakemake.log[0]) as log:
         )  # disc opening of the hex SSM's contact map
         log.info("%s: Jacobian check %s", row["ID"], {c: v for c, v in rep.items() if c != "level_offsets_mm"})
     table = table.merge(pd.DataFrame(checks), on=["ID", "method"], how="left")
-    tmp = atomic_path(snakemake.output.table)
-    table.to_csv(tmp, index=False, float_format="%.6f")
-    commit(tmp, snakemake.output.table)
+    with atomic_write(snakemake.output.table) as tmp:
+        table.to_csv(tmp, index=False, float_format="%.6f")
     Path(snakemake.output.report).write_text(report_markdown(table, info))
     Path(snakemake.output.info).write_text(json.dumps(info, indent=1))
     log.info("personalized %d patients:\n%s", info["n_patients"], Path(snakemake.output.report).read_text())

@@ -10,14 +10,13 @@ from __future__ import annotations
 import io
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from spinecohort.atomic import atomic_write
 from spinecohort.cohort.landmarks import Landmarks
 from spinecohort.cohort.stl_io import MeshInputError, read_stl, write_stl
 
@@ -39,19 +38,6 @@ class Cohort:
     faces: np.ndarray  # (F, 3)
     landmarks: Landmarks
     table: pd.DataFrame  # patient sheet, one row per ID in ``ids`` order
-
-
-def atomic_path(path: str | Path):
-    """A temporary sibling of ``path`` to write to, moved into place by :func:`commit`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
-    return Path(tmp)
-
-
-def commit(tmp: Path, path: str | Path) -> None:
-    os.replace(tmp, path)
 
 
 def write_cohort_folder(
@@ -192,8 +178,7 @@ def load_cohort(
 
 def save_cohort(path: str | Path, cohort: Cohort) -> None:
     """One .npz with the stacked points, faces, part labels, landmarks (JSON) and patient table (CSV)."""
-    tmp = atomic_path(path)
-    with open(tmp, "wb") as fh:
+    with atomic_write(path) as tmp, open(tmp, "wb") as fh:
         np.savez(
             fh,
             ids=np.array(cohort.ids),
@@ -203,7 +188,6 @@ def save_cohort(path: str | Path, cohort: Cohort) -> None:
             landmarks_json=np.array(json.dumps(cohort.landmarks.to_dict())),
             table_csv=np.array(cohort.table.to_csv(index=False)),
         )
-    commit(tmp, path)
 
 
 def load_cohort_npz(path: str | Path) -> Cohort:

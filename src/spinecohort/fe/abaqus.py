@@ -19,12 +19,13 @@ byte-identical, which no mesh library guarantees.
 
 from __future__ import annotations
 
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from spinecohort.atomic import write_text_atomic
 
 #: nodes per element of each supported Abaqus/CalculiX element type.
 NODES_PER_ELEMENT = {
@@ -401,10 +402,7 @@ def write_inp(model: FEModel, path: str | Path, decimals: int = 6, provenance: s
     """Write the model's .inp deck (mm, N, MPa); coordinates with `decimals` decimals (6 = 1 nm)."""
     path = Path(path)
     text = model_to_inp_text(model, decimals, provenance)
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text)
-    os.replace(tmp, path)  # a crashed write leaves no half deck under the final name
-    return path
+    return write_text_atomic(path, text)
 
 
 # --- template decks ----------------------------------------------------------------------------------
@@ -489,10 +487,7 @@ def substitute_coordinates(
         raise ValueError("points contain non-finite coordinates")
     text = tpl.head + format_node_lines(tpl.node_ids, points_mm, tpl.decimals) + tpl.tail
     if out_path is not None:
-        out_path = Path(out_path)
-        tmp = out_path.with_name(out_path.name + ".part")
-        tmp.write_text(text)
-        os.replace(tmp, out_path)
+        write_text_atomic(out_path, text)
     return text
 
 

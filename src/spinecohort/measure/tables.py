@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.cohort.loading import atomic_path, commit
+from spinecohort.atomic import atomic_write
 from spinecohort.measure.spinopelvic import UNITS, parameter_table_header
 
 NOTES = [
@@ -89,8 +89,7 @@ def write_descriptive_list(
 ) -> None:
     """``Descriptive_List.xlsx``: sheet 1 the virtual cohort, sheet 2 the patients (as in the seed), then a
     notes sheet with units and definitions; headers carry units, e.g. ``PI [deg]``."""
-    tmp = atomic_path(path)
-    with pd.ExcelWriter(tmp, engine="openpyxl") as xl:
+    with atomic_write(path) as tmp, pd.ExcelWriter(tmp, engine="openpyxl") as xl:
         for name, df in (("Virtual cohort", virtual), ("Patients", patients)):
             if df is None:
                 continue
@@ -100,7 +99,6 @@ def write_descriptive_list(
             for cell in ws[1]:
                 cell.font = cell.font.copy(bold=True)
         pd.DataFrame(NOTES, columns=["columns", "unit", "definition"]).to_excel(xl, sheet_name="Notes", index=False)
-    commit(tmp, path)
 
 
 #: per-model quality columns of the shard tables carried into the virtual-cohort sheet
@@ -189,9 +187,8 @@ def write_table_twins(df: pd.DataFrame, csv_path: str | Path) -> list[Path]:
         (csv_path, lambda p: df.to_csv(p, index=False, float_format="%.6f")),
         (csv_path.with_suffix(".parquet"), lambda p: df.to_parquet(p, index=False)),
     ):
-        tmp = atomic_path(path)
-        write(tmp)
-        commit(tmp, path)
+        with atomic_write(path) as tmp:
+            write(tmp)
         written.append(path)
     return written
 
@@ -210,10 +207,8 @@ def parse_range(text: str, name: str = "range") -> tuple[float | None, float | N
     return bounds
 
 
-def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> list[str]:
-    """Model IDs of the rows whose every named column lies in its inclusive range (NaN never matches)."""
-    if "model_id" not in table.columns:
-        raise ValueError("the table has no model_id column (is it the virtual cohort CSV?)")
+def query_mask(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> np.ndarray:
+    """(rows,) bool: the rows whose every named column lies in its inclusive range (NaN never matches)."""
     keep = np.ones(len(table), bool)
     for col, (lo, hi) in ranges.items():
         if col not in table.columns or not pd.api.types.is_numeric_dtype(table[col]):
@@ -227,4 +222,11 @@ def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, floa
             keep &= v >= lo
         if hi is not None:
             keep &= v <= hi
-    return table.loc[keep, "model_id"].astype(str).tolist()
+    return keep
+
+
+def query_models(table: pd.DataFrame, ranges: dict[str, tuple[float | None, float | None]]) -> list[str]:
+    """Model IDs of the rows whose every named column lies in its inclusive range (NaN never matches)."""
+    if "model_id" not in table.columns:
+        raise ValueError("the table has no model_id column (is it the virtual cohort CSV?)")
+    return table.loc[query_mask(table, ranges), "model_id"].astype(str).tolist()

@@ -61,20 +61,11 @@ def _faces_of(faces: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.n
 def _closest_points(points: np.ndarray, target: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Closest point (mm) on a triangulated surface for each point (VTK static cell locator)."""
     import vtk
-    from vtk.util import numpy_support
 
-    poly = vtk.vtkPolyData()
-    vp = vtk.vtkPoints()
-    vp.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(target), deep=True))
-    poly.SetPoints(vp)
-    cells = vtk.vtkCellArray()
-    cells.SetData(
-        numpy_support.numpy_to_vtkIdTypeArray(np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64), deep=True),
-        numpy_support.numpy_to_vtkIdTypeArray(faces.astype(np.int64).ravel(), deep=True),
-    )
-    poly.SetPolys(cells)
+    from spinecohort.mesh.vtk_mesh import surface
+
     loc = vtk.vtkStaticCellLocator()
-    loc.SetDataSet(poly)
+    loc.SetDataSet(surface(target, faces))
     loc.BuildLocator()
     closest = np.empty((len(points), 3))
     c = [0.0, 0.0, 0.0]

@@ -627,17 +627,10 @@ def _surface_distance_vtk(pts, verts, faces) -> np.ndarray:
     import vtk
     from vtk.util import numpy_support
 
-    poly = vtk.vtkPolyData()
-    vpts = vtk.vtkPoints()
-    vpts.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(verts), deep=True))
-    poly.SetPoints(vpts)
-    cells = vtk.vtkCellArray()
-    offsets = numpy_support.numpy_to_vtk(np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64), deep=True)
-    conn = numpy_support.numpy_to_vtk(np.ascontiguousarray(faces.ravel()), deep=True)
-    cells.SetData(offsets, conn)
-    poly.SetPolys(cells)
+    from spinecohort.mesh.vtk_mesh import surface
+
     implicit = vtk.vtkImplicitPolyDataDistance()
-    implicit.SetInput(poly)
+    implicit.SetInput(surface(verts, faces))
     query = numpy_support.numpy_to_vtk(np.ascontiguousarray(pts), deep=True)
     out = vtk.vtkDoubleArray()
     implicit.FunctionValue(query, out)

@@ -39,6 +39,7 @@ from spinecohort.mesh.quality import (
     corner_jacobians,
     min_scaled_jacobian_nb,
 )
+from spinecohort.mesh.vtk_mesh import surface
 
 
 class RepairError(ValueError):
@@ -163,8 +164,7 @@ def _surface_near(points: np.ndarray, faces: np.ndarray, node_mask: np.ndarray) 
     """Triangulated surface quads that touch node_mask, as a pyvista PolyData for closest-point queries."""
     quads = faces[node_mask[faces].any(1)]
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    surf = pv.PolyData(points, faces=np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
-    return surf.compute_normals(
+    return surface(points, tris).compute_normals(
         cell_normals=True,
         point_normals=False,
         split_vertices=False,

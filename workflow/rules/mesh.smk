@@ -1,4 +1,5 @@
-# Stage 4: the hexahedral FE template, its morphing onto the SSM mean, the hex SSM and the Abaqus template.
+# Stage 4: the hexahedral FE mesh: the template, its morphing onto the SSM mean (BCPD), its Table 3 quality and
+# the hex SSM (deformation-field transfer). Decks are stage 5 (fe.smk).
 
 
 rule hex_template:
@@ -65,52 +66,6 @@ rule hex_ssm:
         grid=config["grid"],
     script:
         "../scripts/hex_ssm.py"
-
-
-rule template_inp:
-    input:
-        template=L.template,
-        nodes=L.mean_hex,
-    output:
-        L.template_deck,
-    log:
-        f"{LOGS}/template_inp.log",
-    benchmark:
-        L.benchmark("template_inp")
-    conda:
-        "../../environment.yml"
-    threads: 1
-    params:
-        hex_type=config["template"]["hex_type"],
-        fe=config["fe"],
-    script:
-        "../scripts/template_inp.py"
-
-
-rule model_files:
-    input:
-        template=L.template,
-        hex_ssm=L.hex_ssm,
-        ssm=L.ssm,
-        cohort=L.cohort,
-    output:
-        L.model_file("{model_id}", "{ext}"),
-    log:
-        f"{LOGS}/model_files/{{model_id}}.{{ext}}.log",
-    benchmark:
-        L.benchmark("model_files", "{model_id}.{ext}")
-    wildcard_constraints:
-        model_id=r"model_\d{5}",
-        ext="inp|stl|vtu",
-    conda:
-        "../../environment.yml"
-    threads: 1
-    params:
-        grid=config["grid"],
-        hex_type=config["template"]["hex_type"],
-        fe=config["fe"],
-    script:
-        "../scripts/model_files.py"
 
 
 rule template_quality:

@@ -1,4 +1,4 @@
-# Stage 5: the virtual cohort: the Zarr store and one sample/check/repair/measure/write job per shard.
+# Stage 6: the virtual cohort: the Zarr store and one sample/check/repair/measure/write job per shard.
 # (L and SHARDS come from common.smk: the Descriptive_List rule gathers the shards too.) The store
 # itself is a directory written shard by shard; its .initialized marker is what the rules exchange.
 

@@ -1,0 +1,236 @@
+"""The cohort platform at full scale: start time, filter latency on 16,807 rows, slider latency, server RSS.
+
+    python benchmarks/bench_web.py [--work DIR] [--results DIR --config FILE] [--sessions 5] [--no-browser]
+
+Without ``--results`` it builds a stand-in results folder at the default scale: a real SSM of 6 synthetic
+patients at the default surface resolution, the coarse hex template on its mean (64k nodes, 105k surface
+triangles: the default model's size) with its hex SSM of 5 modes, and a **fabricated** 16,807-row table
+(the real columns, values linear in the grid weights plus noise; parameters are not measured).  The
+numbers are then those of the default scale, not of a real run's values.
+
+Measures in-process: data load, page construction, filter latency (``filter_mask`` alone and the whole
+page update: filter + sorted page of rows + histograms), the live shape (hex SSM formula + scene update).
+With Chromium (``/usr/bin/chromium``): ``spinecohort serve`` start time to the first HTTP answer and to a
+drawn 3D view, filter latency seen in the browser, the slider's server-side time (sample + serialise +
+publish) and its end-to-end time to a changed canvas, and the server's RSS with 1 and N sessions open.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def make_results(work: Path) -> tuple[Path, Path]:
+    """The stand-in results folder and its config (see the module docstring); reused when present."""
+    from spinecohort.cohort.landmarks import DISCS
+    from spinecohort.cohort.loading import Cohort, save_cohort
+    from spinecohort.cohort.synthetic import generate_cohort
+    from spinecohort.layout import Layout
+    from spinecohort.mesh.hex_ssm import transfer_fields
+    from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
+    from spinecohort.ssm.model import build_ssm
+    from spinecohort.ssm.procrustes import procrustes_align
+    from spinecohort.store.zarr_store import grid_weights
+
+    results, config = work / "results", work / "config.yaml"
+    L = Layout(results)
+    if Path(L.virtual_cohort_parquet).is_file() and config.is_file():
+        return results, config
+    for p in (L.ssm, L.template, L.cohort):
+        Path(p).parent.mkdir(parents=True, exist_ok=True)
+    c = generate_cohort(6, seed=1, resolution="default")
+    ssm = build_ssm(procrustes_align(c.vertices).aligned)
+    ssm.save(L.ssm)
+    save_cohort(L.cohort, Cohort(c.ids, c.vertices, c.faces, c.landmarks, c.table))
+    tpl = build_template(ssm.mean, c.faces, c.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
+    tpl.save(L.template)
+    transfer_fields(tpl, tpl.nodes, ssm, c.landmarks, 5, "smooth", 1.0).save(L.hex_ssm)
+    levels = [-3.0, -1.5, -0.5, 0.0, 0.5, 1.5, 3.0]
+    w = grid_weights(5, levels)
+    rng = np.random.default_rng(0)
+    n = len(w)
+
+    def lin(base, *coef, noise=1.0):
+        return base + w[:, : len(coef)] @ np.array(coef) + rng.normal(0, noise, n)
+
+    pt, ss = lin(20, 3, -2, 1), lin(35, -4, 3, 2)
+    cols = {"model_id": [f"model_{i:05d}" for i in range(n)], **{f"w{k + 1}": w[:, k] for k in range(5)}}
+    cols.update(PI=pt + ss, PT=pt, SS=ss, LL=lin(45, -6, 4, 2, 1), GT=lin(25, 3, 2), TPA=lin(20, 3, 1))
+    cols["PI_minus_LL"] = cols["PI"] - cols["LL"]
+    cols.update(TK_T1T12=lin(40, 5, -3), TK_T4T12=lin(35, 4, -3), TK_T5T12=lin(32, 4, -2), Cobb=np.abs(lin(5, 2, 0, 3)))
+    cols.update(SVA_T1=lin(60, 15, 10, noise=5), SVA_C7est=lin(65, 15, 10, noise=5))
+    cols.update({f"DH_{a}-{b}": np.abs(lin(8, 0.5, -0.3, 0.2, noise=0.3)) for a, b in DISCS})
+    cols.update(GAP=rng.integers(0, 13, n).astype(float), GAP_category=rng.choice(["P", "MD", "SD"], n))
+    cols.update(min_sj_after=rng.uniform(0.1, 0.5, n), invalid_after=np.zeros(n), repaired=rng.random(n) < 0.05)
+    cols.update(distraction_mm=np.where(rng.random(n) < 0.1, rng.uniform(0, 3, n), 0.0))
+    pd.DataFrame(cols).to_parquet(L.virtual_cohort_parquet, index=False)
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    cfg["results"] = str(results)
+    cfg["grid"] = {"n_modes": 5, "levels": levels}
+    config.write_text(yaml.safe_dump(cfg))
+    return results, config
+
+
+def median_ms(f, n=20) -> float:
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        f()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def in_process(results: Path, config: Path) -> None:
+    from spinecohort.web.app import Platform
+    from spinecohort.web.data import filter_mask, open_data
+
+    t0 = time.perf_counter()
+    data = open_data(results=results, config=config)
+    t1 = time.perf_counter()
+    page = Platform(data)
+    t2 = time.perf_counter()
+    print(f"data load {t1 - t0:.2f} s, page construction {t2 - t1:.2f} s ({len(data.table):,} rows)")
+    ranges = {"PI": (50.0, 60.0), "PT": (None, 25.0), "LL": (30.0, None)}
+    n = int(filter_mask(data.table, ranges).sum())
+    print(f"filter_mask, 3 ranges -> {n:,} rows: {median_ms(lambda: filter_mask(data.table, ranges)):.2f} ms (median)")
+    s = page.state
+    s.sort_by = [{"key": "PI", "order": "desc"}]
+
+    def full():
+        s.f_PI_lo = "50" if s.f_PI_lo != "50" else "51"
+        page.apply_filter()
+
+    print(f"page update (filter + sorted page + 9 histograms): {median_ms(full):.1f} ms (median)")
+    w = np.array([1.0, -0.5, 0.3, 0.0, 2.0])
+    ms = median_ms(lambda: page.scene.show(data.live_points(w)))
+    print(f"live shape ({data.template.n_nodes:,} nodes): hex SSM formula + scene points {ms:.1f} ms (median)")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def in_browser(results: Path, config: Path, sessions: int, shot: Path | None) -> None:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_web import _canvas_pixels, _drawn_share, _type, _wait
+
+    port = _free_port()
+    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port)]
+    cmd += ["--config", str(config), "--results", str(results)]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    url = f"http://127.0.0.1:{port}/"
+    drv = None
+    try:
+        _wait(lambda: urllib.request.urlopen(url, timeout=1), 60, "the server")
+        t_http = time.perf_counter() - t0
+        print(f"start: first HTTP answer {t_http:.1f} s after `spinecohort serve`; RSS {_rss_mb(proc.pid):.0f} MB")
+        opts = webdriver.ChromeOptions()
+        opts.binary_location = "/usr/bin/chromium"
+        for a in (
+            "--headless=new --no-sandbox --disable-dev-shm-usage --window-size=1600,1100 --enable-unsafe-swiftshader "
+            "--disable-background-networking --disable-component-update --disable-sync --no-first-run"
+        ).split():
+            opts.add_argument(a)
+        drv = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=opts)
+        t1 = time.perf_counter()
+        drv.get(url)
+        _wait(lambda: _drawn_share(_canvas_pixels(drv)) > 0.02, 60, "a drawn 3D view")
+        print(
+            f"page + 3D view drawn {time.perf_counter() - t1:.1f} s after loading it "
+            f"({time.perf_counter() - t0:.1f} s after start)"
+        )
+        n_all = drv.find_element("id", "match-count").text.split()[0]
+        lat, prev = [], n_all
+        for lo in ("50", "52", "54", "56", "58"):
+            t = time.perf_counter()
+            _type(drv, "f_PI_lo", lo)
+            _wait(lambda: drv.find_element("id", "match-count").text.split()[0] not in (n_all, prev), 10, "count")
+            lat.append(time.perf_counter() - t)
+            prev = drv.find_element("id", "match-count").text.split()[0]
+        print(f"filter in the browser (type a bound -> new count): median {1e3 * np.median(lat):.0f} ms")
+        _type(drv, "f_PI_lo", "")
+        time.sleep(1.0)
+        e2e, server_ms, shots = [], [], []
+        for w in (0.5, 1.0, 1.5, 2.0, 2.5):  # one state change each, as one slider step sends it
+            time.sleep(1.5)
+            t = time.perf_counter()
+            before = _canvas_pixels(drv)
+            shots.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            drv.execute_script(f"window.trame.state.set('w_0', {w})")
+            _wait(lambda: (np.abs(_canvas_pixels(drv) - before).sum(axis=2) > 30).mean() > 0.001, 10, "a change")
+            e2e.append(time.perf_counter() - t)
+            txt = drv.find_element("xpath", "//*[contains(text(), 'ms on the server')]").text
+            server_ms.append(float(txt.split("(")[-1].split()[0]))
+        print(
+            f"slider: server (sample + serialise + publish) median {np.median(server_ms):.0f} ms; "
+            f"state change -> changed canvas median {1e3 * np.median(e2e):.0f} ms, measured by screenshots that "
+            f"take {1e3 * np.median(shots):.0f} ms each (the true time is up to one of them less)"
+        )
+        if shot:
+            drv.save_screenshot(str(shot))
+            print(f"screenshot: {shot}")
+        print(f"RSS with 1 session: {_rss_mb(proc.pid):.0f} MB")
+        for _ in range(sessions - 1):
+            drv.switch_to.new_window("tab")
+            drv.get(url)
+            _wait(lambda: drv.find_elements("id", "match-count"), 60, "the page")
+        time.sleep(5)
+        print(f"RSS with {sessions} sessions: {_rss_mb(proc.pid):.0f} MB")
+    finally:
+        if drv is not None:
+            drv.quit()
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=15)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "spinecohort-bench-web")
+    ap.add_argument("--results", type=Path)
+    ap.add_argument("--config", type=Path)
+    ap.add_argument("--sessions", type=int, default=5)
+    ap.add_argument("--screenshot", type=Path)
+    ap.add_argument("--no-browser", action="store_true")
+    a = ap.parse_args()
+    if a.results:
+        results, config = a.results, a.config or ROOT / "config" / "config.yaml"
+    else:
+        t0 = time.perf_counter()
+        results, config = make_results(a.work)
+        print(f"stand-in results in {a.work} ({time.perf_counter() - t0:.0f} s)")
+    in_process(results, config)
+    if not a.no_browser and Path("/usr/bin/chromium").exists():
+        in_browser(results, config, a.sessions, a.screenshot)
+
+
+if __name__ == "__main__":
+    main()

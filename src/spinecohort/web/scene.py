@@ -1,0 +1,144 @@
+"""The 3D scene of the platform: a hex model as one VTK polydata coloured by tissue, for vtk.js.
+
+The server builds VTK objects but never renders them: trame-vtk's local view serialises the scene and
+vtk.js draws it in the browser (no OpenGL on the server).  The topology of a model is the template's and
+never changes, so the polydata is built once; a new model, or a slider move, only replaces its point
+coordinates (one (n_nodes, 3) array), and the view sends the changed array.
+
+Colours are the figures' (``figures.HEX_PART_STYLE``, ``SURFACE_STYLE``, ``LIGAMENT_STYLE``): the outer
+faces of the hexes by tissue (cancellous core, cortical shell, NP, AF, CEP), the S3 surface parts
+(posterior elements, sacrum, pelvis, femoral heads) muted, the ligaments by group.
+"""
+
+from __future__ import annotations
+
+import matplotlib.colors
+import numpy as np
+
+from spinecohort.figures import (
+    HEX_PART_STYLE,
+    LIGAMENT_STYLE,
+    SURFACE_STYLE,
+    hex_boundary_faces,
+    hex_tissue,
+    ligament_group,
+)
+
+
+def _rgb255(colour: str) -> np.ndarray:
+    return (255 * np.array(matplotlib.colors.to_rgb(colour))).round().astype(np.uint8)
+
+
+def model_topology(template) -> dict:
+    """Cells and per-cell colours of a hex model, in VTK's cell order (lines, then polygons).
+
+    Returns lines (L, 2), quads (F, 4) the hexes' boundary faces, tris (T, 3) the surface parts, and rgb
+    (L + F + T, 3) uint8."""
+    quads, owner = hex_boundary_faces(template.hexes)
+    tissue = hex_tissue(template)[owner]
+    tissue_rgb = {t: _rgb255(c) for t, (_, c) in HEX_PART_STYLE.items()}
+    lig_rgb = {g: _rgb255(c) for g, (_, c) in LIGAMENT_STYLE.items()}
+    group = ligament_group(template)
+    rgb = np.concatenate(
+        [
+            np.array([lig_rgb[g] for g in group], np.uint8).reshape(-1, 3),
+            np.array([tissue_rgb[t] for t in tissue], np.uint8).reshape(-1, 3),
+            np.repeat(_rgb255(SURFACE_STYLE[1])[None], len(template.tris), axis=0),
+        ]
+    )
+    return {"lines": template.ligaments, "quads": quads, "tris": template.tris, "rgb": rgb}
+
+
+def _cell_array(cells: list[np.ndarray]):
+    """vtkCellArray of cells given as (n, k) id arrays (k may differ between the arrays)."""
+    from vtkmodules.util.numpy_support import numpy_to_vtkIdTypeArray
+    from vtkmodules.vtkCommonDataModel import vtkCellArray
+
+    cells = [np.asarray(c, np.int64) for c in cells if len(c)]
+    offsets = np.concatenate([[0], np.cumsum(np.concatenate([np.full(len(c), c.shape[1]) for c in cells]))])
+    conn = np.concatenate([c.ravel() for c in cells])
+    ca = vtkCellArray()
+    ca.SetData(numpy_to_vtkIdTypeArray(offsets, deep=True), numpy_to_vtkIdTypeArray(conn, deep=True))
+    return ca
+
+
+def model_polydata(topology: dict, points: np.ndarray):
+    """vtkPolyData of a model: ``points`` (n_nodes, 3) mm, lines and polygons of ``topology``, cell colours
+    in the uint8 array ``rgb`` (drawn as they are: the mapper's direct-scalar mode)."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+    pd_ = vtkPolyData()
+    pts = vtkPoints()
+    pts.SetData(numpy_to_vtk(np.ascontiguousarray(points, np.float32), deep=True))
+    pd_.SetPoints(pts)
+    pd_.SetLines(_cell_array([topology["lines"]]))
+    pd_.SetPolys(_cell_array([topology["quads"], topology["tris"]]))
+    colours = numpy_to_vtk(np.ascontiguousarray(topology["rgb"]), deep=True)
+    colours.SetName("tissue_rgb")
+    pd_.GetCellData().SetScalars(colours)
+    return pd_
+
+
+def set_points(polydata, points: np.ndarray) -> None:
+    """Replace the coordinates (n_nodes, 3) mm of ``polydata`` in place (same node count)."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+
+    pts = np.ascontiguousarray(points, np.float32)
+    if pts.shape[0] != polydata.GetNumberOfPoints():
+        raise ValueError(f"{pts.shape[0]} points for a polydata of {polydata.GetNumberOfPoints()}")
+    polydata.GetPoints().SetData(numpy_to_vtk(pts, deep=True))
+    polydata.GetPoints().Modified()
+    polydata.Modified()
+
+
+class Scene:
+    """A render window (never rendered on the server) with the selected model and a translucent overlay."""
+
+    def __init__(self, template, points: np.ndarray, overlay_points: np.ndarray | None = None):
+        from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper, vtkRenderer, vtkRenderWindow
+
+        self.topology = model_topology(template)
+        self.renderer = vtkRenderer()
+        self.renderer.SetBackground(1.0, 1.0, 1.0)
+        self.window = vtkRenderWindow()
+        self.window.AddRenderer(self.renderer)
+        self.polydata, self.actor = [], []
+        for i, pts in enumerate((points, overlay_points if overlay_points is not None else points)):
+            pd_ = model_polydata(self.topology, pts)
+            mapper = vtkPolyDataMapper()
+            mapper.SetInputData(pd_)
+            mapper.SetScalarModeToUseCellData()
+            mapper.SetColorModeToDirectScalars()
+            mapper.ScalarVisibilityOn()
+            actor = vtkActor()
+            actor.SetMapper(mapper)
+            if i == 1:  # the overlay: translucent grey, no tissue colours
+                mapper.ScalarVisibilityOff()
+                actor.GetProperty().SetColor(0.25, 0.45, 0.85)
+                actor.GetProperty().SetOpacity(0.25)
+                actor.SetVisibility(overlay_points is not None)
+            self.renderer.AddActor(actor)
+            self.polydata.append(pd_)
+            self.actor.append(actor)
+        self.reset_camera()
+
+    def reset_camera(self) -> None:
+        """A lateral view of the whole model (x lateral, y anterior, z up): the local view never renders on
+        the server, so the camera must be placed before the first frame is serialised."""
+        cam = self.renderer.GetActiveCamera()
+        cam.SetFocalPoint(0.0, 0.0, 0.0)
+        cam.SetPosition(1.0, 0.0, 0.0)
+        cam.SetViewUp(0.0, 0.0, 1.0)
+        self.renderer.ResetCamera(self.polydata[0].GetBounds())
+
+    def show(self, points: np.ndarray) -> None:
+        set_points(self.polydata[0], points)
+
+    def overlay(self, points: np.ndarray | None) -> None:
+        if points is None:
+            self.actor[1].SetVisibility(False)
+        else:
+            set_points(self.polydata[1], points)
+            self.actor[1].SetVisibility(True)
