@@ -177,9 +177,21 @@ def test_table_pages_sort_server_side(data):
     page.update_rows()
     expect = data.table.sort_values("PI", ascending=False)["model_id"].head(5).tolist()
     assert [r["model_id"] for r in page.state.rows] == expect
-    page.state.f_other = "PT 20:"  # a second page of a filtered table
+    page.state.f_other = "PT 20:"  # a filtered table
     page.apply_filter()
-    assert page.state.n_match == int((data.table["PT"] >= 20).sum())
+    n = int((data.table["PT"] >= 20).sum())
+    assert page.state.n_match == n and 0 < n < len(data.table)
+    # unreadable filters: a message, and the last valid selection stays
+    for bad, why in (("PT twenty", "not a range"), ("XX 1:2", "no numeric column 'XX'")):
+        page.state.f_other = bad
+        page.apply_filter()
+        assert why in page.state.message and page.state.n_match == n
+    page.state.f_other, page.state.f_PI_lo, page.state.f_PI_hi = "", "60", "50"
+    page.apply_filter()
+    assert "PI: min 60 exceeds max 50" in page.state.message
+    page.state.f_PI_lo = page.state.f_PI_hi = ""
+    page.apply_filter()
+    assert page.state.message == "" and page.state.n_match == len(data.table)
 
 
 def test_serve_warns_when_listening_beyond_this_machine(tmp_path):
@@ -350,6 +362,9 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{expect} of {n_all}"), 10, "the count")
     _type(drv, "f_PI_lo", "")
     _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{n_all} of"), 10, "the reset count")
+    drv.find_elements("css selector", "#table .model-link")[1].click()  # a click in the table shows that model
+    _wait(lambda: drv.find_element("id", "param-PI").text != "", 15, "the clicked model")
+    assert "model_00001" in drv.find_element("id", "shown").text
 
     # 2. select a model: its PI from the table in the parameter panel, a drawn (non-blank) 3D view
     model = "model_00005"

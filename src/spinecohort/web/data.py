@@ -203,7 +203,7 @@ class Sources:
         opt = lambda p: Path(p) if Path(p).exists() else None  # noqa: E731
         m = config.get("measure", {})
         return cls(
-            origin=f"results {results}",
+            origin=f"results {Path(results).resolve()}",
             table_csv=opt(L.virtual_cohort_csv),
             table_parquet=opt(L.virtual_cohort_parquet),
             personalization_csv=opt(L.personalization_csv),
@@ -236,7 +236,7 @@ class Sources:
         data = Path(src["ssm"]).parent.parent
         opt = lambda p: p if p.exists() else None  # noqa: E731
         return cls(
-            origin=f"release {bag}",
+            origin=f"release {Path(bag).resolve()}",
             table_csv=opt(data / "virtual_cohort.csv"),
             table_parquet=None,
             personalization_csv=opt(data / "personalized" / "personalization.csv"),
