@@ -162,6 +162,23 @@ def test_downloads_equal_spinecohort_export_byte_for_byte(data, test_run, tmp_pa
         assert z.read("model_00005.inp") == (tmp_path / "cli.inp").read_bytes()
 
 
+def test_the_continuous_fit_and_its_deck_equal_spinecohort_personalize(data, test_run, tmp_path):
+    targets = data.check_targets({"PI": "55", "PT": "22", "LL": "40"})
+    assert targets == {"PI": 55.0, "PT": 22.0, "LL": 40.0, "SS": 33.0}  # SS = PI - PT
+    res = data.fit(targets)
+    out = tmp_path / "cli.inp"
+    proc = subprocess.run(
+        [sys.executable, "-m", "spinecohort.cli", "personalize", "--PI", "55", "--PT", "22", "--LL", "40"]
+        + ["--out", str(out), "--config", str(test_run / "config" / "config.yaml")]
+        + ["--results", str(test_run / "results")],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    assert f"weights (SD): {np.round(res.weights, 4).tolist()}" in proc.stdout
+    assert data.fitted_deck(targets, res) == out.read_bytes()
+
+
 def test_live_shape_is_the_hex_ssm_formula(data):
     w = np.array([0.7, -1.2, 2.5])
     expect = data.hex_ssm.mean + np.einsum("m,mnc->nc", w, data.hex_ssm.fields[:3])
@@ -438,6 +455,10 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     _wait(lambda: "continuous model: weights" in drv.find_element("id", "fit-text").text, 60, "the fitted model")
     nearest = _wait(lambda: drv.find_elements("xpath", "//td[starts-with(normalize-space(), 'd = ')]"), 10, "nearest")
     assert len(nearest) == 5
+    drv.find_element("id", "dl-fit").click()  # one click from the numbers to a deck
+    fit = _wait(lambda: (p := drv.downloads / "personalized.inp").is_file() and p.stat().st_size > 0 and p, 60, "deck")
+    time.sleep(0.5)
+    assert len(read_inp_nodes(fit)[0]) == len(stored)
     assert server["proc"].poll() is None
 
 
