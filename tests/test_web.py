@@ -162,6 +162,23 @@ def test_downloads_equal_spinecohort_export_byte_for_byte(data, test_run, tmp_pa
         assert z.read("model_00005.inp") == (tmp_path / "cli.inp").read_bytes()
 
 
+def test_the_continuous_fit_and_its_deck_equal_spinecohort_personalize(data, test_run, tmp_path):
+    targets = data.check_targets({"PI": "55", "PT": "22", "LL": "40"})
+    assert targets == {"PI": 55.0, "PT": 22.0, "LL": 40.0, "SS": 33.0}  # SS = PI - PT
+    res = data.fit(targets)
+    out = tmp_path / "cli.inp"
+    proc = subprocess.run(
+        [sys.executable, "-m", "spinecohort.cli", "personalize", "--PI", "55", "--PT", "22", "--LL", "40"]
+        + ["--out", str(out), "--config", str(test_run / "config" / "config.yaml")]
+        + ["--results", str(test_run / "results")],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    assert f"weights (SD): {np.round(res.weights, 4).tolist()}" in proc.stdout
+    assert data.fitted_deck(targets, res) == out.read_bytes()
+
+
 def test_live_shape_is_the_hex_ssm_formula(data):
     w = np.array([0.7, -1.2, 2.5])
     expect = data.hex_ssm.mean + np.einsum("m,mnc->nc", w, data.hex_ssm.fields[:3])
@@ -177,9 +194,21 @@ def test_table_pages_sort_server_side(data):
     page.update_rows()
     expect = data.table.sort_values("PI", ascending=False)["model_id"].head(5).tolist()
     assert [r["model_id"] for r in page.state.rows] == expect
-    page.state.f_other = "PT 20:"  # a second page of a filtered table
+    page.state.f_other = "PT 20:"  # a filtered table
     page.apply_filter()
-    assert page.state.n_match == int((data.table["PT"] >= 20).sum())
+    n = int((data.table["PT"] >= 20).sum())
+    assert page.state.n_match == n and 0 < n < len(data.table)
+    # unreadable filters: a message, and the last valid selection stays
+    for bad, why in (("PT twenty", "not a range"), ("XX 1:2", "no numeric column 'XX'")):
+        page.state.f_other = bad
+        page.apply_filter()
+        assert why in page.state.message and page.state.n_match == n
+    page.state.f_other, page.state.f_PI_lo, page.state.f_PI_hi = "", "60", "50"
+    page.apply_filter()
+    assert "PI: min 60 exceeds max 50" in page.state.message
+    page.state.f_PI_lo = page.state.f_PI_hi = ""
+    page.apply_filter()
+    assert page.state.message == "" and page.state.n_match == len(data.table)
 
 
 def test_serve_warns_when_listening_beyond_this_machine(tmp_path):
@@ -350,6 +379,9 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{expect} of {n_all}"), 10, "the count")
     _type(drv, "f_PI_lo", "")
     _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{n_all} of"), 10, "the reset count")
+    drv.find_elements("css selector", "#table .model-link")[1].click()  # a click in the table shows that model
+    _wait(lambda: drv.find_element("id", "param-PI").text != "", 15, "the clicked model")
+    assert "model_00001" in drv.find_element("id", "shown").text
 
     # 2. select a model: its PI from the table in the parameter panel, a drawn (non-blank) 3D view
     model = "model_00005"
@@ -423,6 +455,10 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     _wait(lambda: "continuous model: weights" in drv.find_element("id", "fit-text").text, 60, "the fitted model")
     nearest = _wait(lambda: drv.find_elements("xpath", "//td[starts-with(normalize-space(), 'd = ')]"), 10, "nearest")
     assert len(nearest) == 5
+    drv.find_element("id", "dl-fit").click()  # one click from the numbers to a deck
+    fit = _wait(lambda: (p := drv.downloads / "personalized.inp").is_file() and p.stat().st_size > 0 and p, 60, "deck")
+    time.sleep(0.5)
+    assert len(read_inp_nodes(fit)[0]) == len(stored)
     assert server["proc"].poll() is None
 
 

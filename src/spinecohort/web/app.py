@@ -391,7 +391,7 @@ class Platform:
             return
         err = ", ".join(f"{p} {res.achieved[p] - v:+.2f}" for p, v in targets.items() if p in res.achieved)
         s.fit_weights = [float(x) for x in res.weights]
-        self._fit = res
+        self._fit, self._fit_targets = res, targets
         s.fit_text = (
             f"continuous model: weights {np.round(res.weights, 2).tolist()} SD, posture {res.posture_deg:.2f} deg; "
             f"fit error (achieved - target, deg): {err}"
@@ -420,6 +420,15 @@ class Platform:
                 self.error(exc)
             raise
         return payload
+
+    async def download_fit(self):
+        res = getattr(self, "_fit", None)
+        if res is None:
+            with self.state:
+                self.error(PlatformError("find a patient first"))
+            raise PlatformError("no fit")
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(None, self.data.fitted_deck, self._fit_targets, res)
 
     def download_table(self, fmt):
         try:
@@ -468,6 +477,7 @@ class Platform:
         c.trigger("download_model")(self.download_model)
         c.trigger("download_table")(self.download_table)
         c.trigger("download_zip")(self.download_zip)
+        c.trigger("download_fit")(self.download_fit)
 
     def _build_ui(self) -> None:
         from trame.ui.vuetify3 import SinglePageWithDrawerLayout
@@ -544,13 +554,15 @@ class Platform:
                             html.Td("d = {{ r.distance }}")
                             html.Td("PI {{ r.PI }} PT {{ r.PT }} SS {{ r.SS }} LL {{ r.LL }}")
                     html.Div("{{ fit_text }}", classes="text-caption", id="fit-text")
-                    v.VBtn(
-                        "show continuous model",
-                        click=self.show_fit,
-                        size="x-small",
-                        v_show="fit_weights.length",
-                        id="show-fit",
-                    )
+                    with html.Div(v_show="fit_weights.length"):
+                        v.VBtn("show continuous model", click=self.show_fit, size="x-small", id="show-fit")
+                        v.VBtn(
+                            "its .inp",
+                            size="x-small",
+                            classes="ml-1",
+                            id="dl-fit",
+                            click="utils.download('personalized.inp', trigger('download_fit', []), 'text/plain')",
+                        )
             with layout.content:
                 with v.VContainer(fluid=True, classes="pa-2"):
                     v.VAlert(

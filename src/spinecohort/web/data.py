@@ -203,7 +203,7 @@ class Sources:
         opt = lambda p: Path(p) if Path(p).exists() else None  # noqa: E731
         m = config.get("measure", {})
         return cls(
-            origin=f"results {results}",
+            origin=f"results {Path(results).resolve()}",
             table_csv=opt(L.virtual_cohort_csv),
             table_parquet=opt(L.virtual_cohort_parquet),
             personalization_csv=opt(L.personalization_csv),
@@ -236,7 +236,7 @@ class Sources:
         data = Path(src["ssm"]).parent.parent
         opt = lambda p: p if p.exists() else None  # noqa: E731
         return cls(
-            origin=f"release {bag}",
+            origin=f"release {Path(bag).resolve()}",
             table_csv=opt(data / "virtual_cohort.csv"),
             table_parquet=None,
             personalization_csv=opt(data / "personalized" / "personalization.csv"),
@@ -546,6 +546,30 @@ class CohortData:
                 self.ssm, load_cohort_npz(self.src.cohort).landmarks, settings, self.src.measure
             )
         return self._fit_model.fit(targets)
+
+    def fitted_deck(self, targets: dict[str, float], res) -> bytes:
+        """The .inp deck of a continuous fit, composed as ``spinecohort personalize --out`` composes it
+        (``personalized_hex``, ``fe_model``, ``write_inp``, the same heading): the same bytes."""
+        from spinecohort.fe.abaqus import write_inp
+        from spinecohort.fe.export import fe_model, materials_from_config
+        from spinecohort.personalize import personalized_hex
+
+        pts, _ = personalized_hex(self.template, self.hex_ssm, res.weights, res.posture_deg, name="personalized model")
+        heading = (
+            f"spinecohort personalized model: targets {targets}, weights (SD) "
+            f"{np.round(res.weights, 4).tolist()}, posture {res.posture_deg:.3f} deg"
+        )
+        fe = fe_model(
+            self.template,
+            pts,
+            hex_type=self.src.hex_type,
+            heading=heading,
+            materials=materials_from_config(self.src.fe),
+        )
+        with tempfile.TemporaryDirectory(prefix="spinecohort-web-") as tmp:
+            out = Path(tmp) / "personalized.inp"
+            write_inp(fe, out, provenance=heading)
+            return out.read_bytes()
 
 
 def open_data(
