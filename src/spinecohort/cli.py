@@ -386,8 +386,7 @@ def main(argv: list[str] | None = None) -> int:
         help="the cohort platform in the browser: filter, find a patient's model, see it in 3D, download "
         "(read-only; binds 127.0.0.1 unless --host says otherwise)",
     )
-    sv.add_argument("--config", type=Path, default=Path("config/config.yaml"))
-    sv.add_argument("--results", type=Path, help="results folder (default: the config's)")
+    _add_config_args(sv)
     sv.add_argument("--release", type=Path, help="serve a release bag instead (read in place, never written)")
     sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
     sv.add_argument("--port", type=int, default=8080)

@@ -49,32 +49,18 @@ def model_topology(template) -> dict:
     return {"lines": template.ligaments, "quads": quads, "tris": template.tris, "rgb": rgb}
 
 
-def _cell_array(cells: list[np.ndarray]):
-    """vtkCellArray of cells given as (n, k) id arrays (k may differ between the arrays)."""
-    from vtkmodules.util.numpy_support import numpy_to_vtkIdTypeArray
-    from vtkmodules.vtkCommonDataModel import vtkCellArray
-
-    cells = [np.asarray(c, np.int64) for c in cells if len(c)]
-    offsets = np.concatenate([[0], np.cumsum(np.concatenate([np.full(len(c), c.shape[1]) for c in cells]))])
-    conn = np.concatenate([c.ravel() for c in cells])
-    ca = vtkCellArray()
-    ca.SetData(numpy_to_vtkIdTypeArray(offsets, deep=True), numpy_to_vtkIdTypeArray(conn, deep=True))
-    return ca
-
-
 def model_polydata(topology: dict, points: np.ndarray):
-    """vtkPolyData of a model: ``points`` (n_nodes, 3) mm, lines and polygons of ``topology``, cell colours
-    in the uint8 array ``rgb`` (drawn as they are: the mapper's direct-scalar mode)."""
+    """vtkPolyData of a model: ``points`` (n_nodes, 3) mm as float32, lines and polygons of ``topology``, cell
+    colours in the uint8 array ``rgb`` (drawn as they are: the mapper's direct-scalar mode)."""
     from vtkmodules.util.numpy_support import numpy_to_vtk
-    from vtkmodules.vtkCommonCore import vtkPoints
-    from vtkmodules.vtkCommonDataModel import vtkPolyData
 
-    pd_ = vtkPolyData()
-    pts = vtkPoints()
-    pts.SetData(numpy_to_vtk(np.ascontiguousarray(points, np.float32), deep=True))
-    pd_.SetPoints(pts)
-    pd_.SetLines(_cell_array([topology["lines"]]))
-    pd_.SetPolys(_cell_array([topology["quads"], topology["tris"]]))
+    from spinecohort.mesh.vtk_mesh import polydata
+
+    pd_ = polydata(
+        np.ascontiguousarray(points, np.float32),
+        polys=(topology["quads"], topology["tris"]),
+        lines=(topology["lines"],),
+    )
     colours = numpy_to_vtk(np.ascontiguousarray(topology["rgb"]), deep=True)
     colours.SetName("tissue_rgb")
     pd_.GetCellData().SetScalars(colours)
