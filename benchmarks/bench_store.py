@@ -63,10 +63,18 @@ print(time.perf_counter() - t1, t1 - t0, tri.shape[0], hexp.shape[0])
 """
 
 
+#: what Snakemake sets for a job with threads: 1 (snakemake.shell)
+ONE_THREAD = {
+    k: "1"
+    for k in ("OMP_NUM_THREADS", "GOTO_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+}
+
+
 def run(cmd: list[str]) -> dict:
-    """Run a process; its wall time, CPU time (user + system) and peak RSS from wait4."""
+    """Run a process as a threads: 1 job; its wall time, CPU time (user + system) and peak RSS from wait4."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = {**os.environ, **ONE_THREAD}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     _, status, ru = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     out, err = proc.stdout.read(), proc.stderr.read()
@@ -79,7 +87,9 @@ def run(cmd: list[str]) -> dict:
 def codec_floor(path: Path, shards: list[int]) -> float:
     """CPU s to encode the stored values of ``shards`` with the store's codec chain alone."""
     import zarr
+    from numcodecs import blosc
 
+    blosc.set_nthreads(1)  # as in the shard job
     root = zarr.open_group(str(path), mode="r")
     meta = dict(root.attrs)
     codec = S._blosc_codecs(root["tri/points"].metadata.codecs[0].codecs[-1].clevel)[1]

@@ -418,7 +418,7 @@ def test_browser_filter_select_slide_download(browser, server, test_run, tmp_pat
     ids, xyz = read_inp_nodes(deck)
     _, stored = read_model(test_run / "results" / "cohort.zarr", 5)
     assert ids.tolist() == list(range(1, len(stored) + 1))
-    # the store quantizes to 0.001 mm (int32-delta): coordinates agree within that
+    # the store rounds to 2^-10 mm (float32-q10, error <= 0.49 um); the deck prints 6 decimals
     assert np.abs(xyz - stored).max() < 1e-3
 
     # 5. the mean as a translucent overlay; a bounded zip of the filtered decks and the filtered table as CSV

@@ -388,9 +388,13 @@ def run_shard_job(
     import json
     from pathlib import Path
 
+    from numcodecs import blosc
+
     from spinecohort.cohort.loading import load_cohort_npz
     from spinecohort.store.zarr_store import ShardWriter
 
+    # the rule has threads: 1 (Snakemake sets OMP/OpenBLAS threads to it; blosc has its own pool)
+    blosc.set_nthreads(1)
     t0 = time.perf_counter()
     store = Path(store)
     ids, weights = shard_models_of(store, shard)  # the store's own grid, not the config's
