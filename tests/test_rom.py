@@ -1,4 +1,4 @@
-"""Tests of spinecohort.rom.analysis (ROM submodels, pure-moment decks, Kabsch kinematics, in-vitro comparison) and
+"""Tests of spinecohort.rom (ROM submodels, pure-moment decks, Kabsch kinematics, in-vitro comparison) and
 the rom_model / rom_validation rules.  Closed-form cases: a pure moment on an elastic column against beam
 theory, a linear two-block unit's symmetry; the test-config DAG solves one lumbar functional unit (L3-L4)
 nonlinear with tension-only ligaments."""
@@ -18,18 +18,18 @@ from spinecohort.fe.abaqus import FEModel, LinearElastic, Section, read_inp_node
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.analysis import (
+from spinecohort.rom.analysis import validate
+from spinecohort.rom.deck import rom_deck_text
+from spinecohort.rom.run import Settings, run_case
+from spinecohort.rom.submodel import (
     FacetContact,
     RomError,
     RomModel,
     column_levels,
     extract_rom_model,
     facet_gaps,
-    kabsch_rotations,
-    rom_deck_text,
-    run_case,
-    validate,
 )
+from spinecohort.ssm.procrustes import kabsch
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_CCX = shutil.which("ccx") is not None
@@ -101,7 +101,8 @@ def test_kabsch_recovers_known_rotations_batched():
     ref = rng.normal(size=(5, 40, 3)) * 20.0
     rots = Rotation.random(5, random_state=4).as_matrix()
     moved = np.einsum("bij,bkj->bki", rots, ref) + rng.normal(size=(5, 1, 3)) * 7.0  # rotate + translate
-    np.testing.assert_allclose(kabsch_rotations(ref, moved - ref), rots, atol=1e-12)
+    # the segment kinematics use procrustes.kabsch on (reference, displaced) endplate nodes
+    np.testing.assert_allclose(kabsch(ref, moved)[0], rots, atol=1e-12)
 
 
 def test_column_levels_and_unit_parsing():
@@ -514,3 +515,15 @@ def test_exported_deck_has_fibre_annulus_and_per_group_ligaments(tmp_path, templ
         "*SPRING, ELSET=LIG_ALL, NONLINEAR"
         not in write_inp(fe_model(template, include_all=False), tmp_path / "n.inp").read_text()
     )
+
+
+def test_rom_settings_from_the_config():
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["rom"]
+    s = Settings.from_config(cfg)
+    # the default config: pelvis..T10 lumbar model and three thoracic units, six load cases at 7.5 N.m
+    assert s.lumbar == ("T10", "S1") and s.units == (("T2", "T3"), ("T6", "T7"), ("T10", "T11"))
+    assert s.moment_nmm == 7500.0 and len(s.load_cases) == 6 and s.facets == FacetContact.from_config(cfg["facets"])
+    assert s.deck_kw()["average_force_n"] == cfg["reference_force_n"]
+    assert Settings.from_config({**cfg, "lumbar": {**cfg["lumbar"], "enabled": False}}).lumbar is None

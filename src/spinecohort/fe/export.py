@@ -17,7 +17,7 @@ below equal config/config.yaml, each with its literature source:
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
   switchable.  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
   export deck uses one table per group at the group's mean rest length in the model; the ROM decks
-  (`spinecohort.rom.analysis`) use one table per ligament element.
+  (`spinecohort.rom.submodel`) use one table per ligament element.
 """
 
 from __future__ import annotations
