@@ -11,7 +11,9 @@ element per joint.  Elements: C3D8 for bone, cartilage endplates and nucleus, C3
 The posterior elements are S3 skins in the template and share no node with the hex bodies; bone is ~10^4
 times stiffer than disc and ligament, so each posterior arch is modelled as rigid: a stiff truss joins its
 ligament/facet anchor nodes to each other and to the body's posterior cortical-shell nodes between its
-endplates (the pedicle base); the skin elements themselves carry nothing and are left out.  The sacrum and
+endplates (the pedicle base) -- the truss of `spinecohort.fe.connections`, the one the exported deck carries
+(there with the skins' own attachment nodes added); the skin elements themselves carry nothing here and are
+left out.  The sacrum and
 pelvis are fixed in vitro and here: a lumbar model fixes the S1 plate (the bottom node layer of the column);
 a functional unit fixes its whole lower vertebra (potting).  The moment acts on the top vertebra, potted
 too: one *RIGID BODY of its body and arch anchors (`spinecohort.rom.deck`).
@@ -31,6 +33,14 @@ import numpy as np
 
 from spinecohort.cohort.landmarks import LEVELS
 from spinecohort.fe.abaqus import SOLID_TYPES, FEModel, Section
+from spinecohort.fe.connections import (
+    CONNECTOR_TABLE,
+    arch_nodes,
+    arch_owner,
+    body_layer,
+    posterior_wall,
+    truss_pairs,
+)
 from spinecohort.fe.export import (
     DEFAULT_MATERIALS,
     FEMaterials,
@@ -42,10 +52,6 @@ from spinecohort.fe.export import (
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 
 COLUMN = LEVELS + ("S1",)
-#: axial stiffness (N/mm) of each spring of an intermediate vertebra's arch truss: with ~30 springs per
-#: anchor the arch deflects ~0.01 mm under a 100 N ligament force, i.e. it is as good as rigid next to the
-#: disc, while the matrix stays well conditioned next to 0.1 MPa soft tissue
-ARCH_SPRING_N_PER_MM = 2000.0
 #: hex sets (by name suffix) that get ``annulus_hex_type``
 ANNULUS_TYPE_TISSUES: tuple[str, ...] = ("_AF",)
 
@@ -132,7 +138,7 @@ def facet_gaps(
 ) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
     """((clearance, direction, stiffness), elset name) of each facet pair (IAP tip of the upper vertebra,
     SAP tip of the lower), in the order of `pairs`; direction from the SAP towards the IAP."""
-    owner = _arch_owner(template)
+    owner = arch_owner(template)
     frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs[:, 0]}}
     out = []
     for iap, sap in pairs:
@@ -162,39 +168,6 @@ def parse_unit(name: str) -> tuple[str, str]:
     return m[1], m[2]
 
 
-def _layer(template: HexTemplate, level: str, t: float) -> int:
-    if level == "S1":
-        return 0
-    for i, layer in enumerate(template.layers):
-        if layer["kind"] == "body" and layer["level"] == level and abs(layer["t"] - t) < 1e-12:
-            return i
-    raise KeyError((level, t))
-
-
-def _posterior_wall(template: HexTemplate, level: str, band: float = -0.7) -> np.ndarray:
-    """Template node ids of the body's posterior cortical shell (the two outermost rings where the unit
-    cross-section has y < band) on its interior node layers (the pedicle base the arch is fixed to)."""
-    g = template.grid
-    n2, m = len(g.nodes), len(g.outer)
-    n_core = n2 - g.shell_ring * m
-    post = np.flatnonzero(g.nodes[g.outer][:, 1] < band)
-    ring_ids = np.concatenate([n_core + k * m + post for k in (g.shell_ring - 2, g.shell_ring - 1)])
-    lo, hi = _layer(template, level, 0.0), _layer(template, level, 1.0)
-    return (np.arange(lo + 1, hi)[:, None] * n2 + ring_ids[None, :]).ravel()
-
-
-def _arch_nodes(template: HexTemplate, level: str) -> np.ndarray:
-    key = f"POST_{level}"
-    if key not in template.elsets:
-        return np.zeros(0, dtype=np.int64)
-    return np.unique(template.tris[template.elsets[key]])
-
-
-def _arch_owner(template: HexTemplate) -> dict[int, str]:
-    """Template node id of every posterior-arch node -> its vertebra."""
-    return {int(n): v for v in LEVELS for n in _arch_nodes(template, v)}
-
-
 def extract_rom_model(
     template: HexTemplate,
     points: np.ndarray,
@@ -222,12 +195,12 @@ def extract_rom_model(
         raise ValueError(f"points have shape {points.shape}, the template has {template.nodes.shape}")
     verts = column_levels(top, bottom)
     n2, nq = len(template.grid.nodes), len(template.grid.quads)
-    lo = 0 if bottom == "S1" else _layer(template, bottom, 0.0)
-    hi = _layer(template, top, 1.0)
+    lo = 0 if bottom == "S1" else body_layer(template, bottom, 0.0)
+    hi = body_layer(template, top, 1.0)
     hex_ids = (np.arange(lo, hi)[:, None] * nq + np.arange(nq)[None, :]).ravel()
     hex_nodes = np.arange(lo * n2, (hi + 1) * n2)
     bones = [v for v in verts if v != "S1"]
-    arch = {v: _arch_nodes(template, v) for v in bones}
+    arch = {v: arch_nodes(template, v) for v in bones}
     # ligaments whose two ends are on the kept hex layers or on the kept arches
     lig_group = np.empty(len(template.ligaments), dtype=object)
     for g in LIGAMENT_GROUPS:
@@ -259,7 +232,7 @@ def extract_rom_model(
     # each facet joint: two coincident nodes at the midpoint of the two process tips, one tied to each
     # vertebra's arch.  Coincident, so that a rigid rotation of the whole joint (L3 turns ~12 deg in the
     # lumbar model) does not open or close the gap, as it did between the two tips 12 mm apart.
-    owner = _arch_owner(template)
+    owner = arch_owner(template)
     extra_tied: dict[str, list[int]] = {v: [] for v in bones}
     facet_conn = np.zeros((0, 2), dtype=np.int64)
     if len(facet_pairs):
@@ -331,11 +304,11 @@ def extract_rom_model(
             frames[v] = fit_endplate(points[ep]).frame
             endplates[v] = new_of[ep]
             continue
-        inf_l, sup_l = _layer(template, v, 0.0), _layer(template, v, 1.0)
+        inf_l, sup_l = body_layer(template, v, 0.0), body_layer(template, v, 1.0)
         inf, sup = inf_l * n2 + np.arange(n2), sup_l * n2 + np.arange(n2)
         endplates[v] = new_of[np.concatenate([inf, sup])]
         frames[v] = vertebra_frame(template, points, v)[0]
-        wall = new_of[_posterior_wall(template, v)]
+        wall = new_of[posterior_wall(template, v)]
         a = np.concatenate([new_of[anchors[v]], np.asarray(extra_tied[v], dtype=np.int64)])
         tied = np.concatenate([wall, a])
         # the loaded top and a unit's fixed bottom vertebra are potted in vitro: the whole vertebra (body
@@ -351,20 +324,16 @@ def extract_rom_model(
             # the anchors.  Seven *RIGID BODY arches in the lumbar model stalled ccx's Newton iterations
             # (flexion: 14 -> 43 iterations per increment, no convergence past 35 % of the load, discs
             # alone); without them, 10 per increment to the full load (docs/rom.md).
-            ii, jj = np.triu_indices(len(a), 1)
-            pairs = np.concatenate(
-                [np.stack(np.meshgrid(a, wall, indexing="ij"), -1).reshape(-1, 2), np.stack([a[ii], a[jj]], 1)]
-            )
+            pairs = truss_pairs(a, wall)
             arch_springs.append((v, pairs))
     if bottom == "S1":
         fixed = new_of[np.arange(n2)]
     if arch_springs:
         first = sum(len(c) for _, c in blocks.values())
         blocks["ARCHES"] = ("SPRINGA", np.concatenate([p for _, p in arch_springs]))
-        table = ((-ARCH_SPRING_N_PER_MM * 100.0, -100.0), (ARCH_SPRING_N_PER_MM * 100.0, 100.0))  # linear
         for v, p in arch_springs:
             elsets[f"ARCH_{v}"] = np.arange(first, first + len(p))
-            sections.append(Section(elset=f"ARCH_{v}", spring_force_elongation=table))
+            sections.append(Section(elset=f"ARCH_{v}", spring_force_elongation=CONNECTOR_TABLE))
             first += len(p)
     fe = FEModel(
         nodes=pts,
@@ -383,7 +352,7 @@ def vertebra_frame(template: HexTemplate, points: np.ndarray, level: str) -> tup
     """Anatomical frame (3, 3: columns lateral, anterior, cranial) of a vertebra, between its two endplate
     frames, and the centre (mm) of its endplate nodes."""
     n2 = len(template.grid.nodes)
-    inf, sup = (_layer(template, level, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
+    inf, sup = (body_layer(template, level, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
     frame = mean_frame(fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame)
     return frame, points[np.concatenate([inf, sup])].mean(0)
 
