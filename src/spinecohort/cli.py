@@ -255,6 +255,7 @@ def _personalize(args: argparse.Namespace) -> int:
             hex_type=cfg["template"]["hex_type"],
             heading=heading,
             materials=materials_from_config(cfg.get("fe")),
+            connectors=args.out.suffix != ".vtu",  # a picture: no connector lines
         )
         if args.out.suffix == ".vtu":
             write_vtu(fe, args.out)

@@ -125,7 +125,11 @@ def write_model(
             check_deck(fe, str(out))
             out.write_text(model_load_text(fe, template, load, top, moment_nmm))
     elif fmt == "vtu":
-        write_vtu(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials), out)
+        # the picture without the connector lines (not anatomy); elements keep their deck ids (connectors are last)
+        fe = fe_model(
+            template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials, connectors=False
+        )
+        write_vtu(fe, out)
     else:
         raise ValueError(f"unknown format '{fmt}' (inp | stl | vtu)")
     if load is not None and fmt != "inp":
