@@ -110,6 +110,8 @@ def write_model(
     from spinecohort.fe.abaqus import write_vtu
     from spinecohort.fe.export import check_deck, write_deck
 
+    if load is not None and fmt != "inp":
+        raise ValueError(f"--load needs --format inp, not {fmt}")
     out = Path(out)
     name = f"model_{vm.model_id:05d}"
     heading = f"spinecohort {name}, weights (SD) {np.round(vm.weights, 3).tolist()}"
@@ -132,6 +134,4 @@ def write_model(
         write_vtu(fe, out)
     else:
         raise ValueError(f"unknown format '{fmt}' (inp | stl | vtu)")
-    if load is not None and fmt != "inp":
-        raise ValueError(f"--load needs --format inp, not {fmt}")
     return out
