@@ -33,16 +33,20 @@ PLANES = {
 }
 
 
-#: step controls of a whole-model load deck: config/config.yaml's rom block (nlgeom ... max_increments,
-#: reference_force_n)
+#: step controls of a whole-model load deck: the ROM's (config/config.yaml's rom block: field controls with a
+#: 500 N reference force), but smaller increments.  A whole spine turns ~17 times as much as one unit: with
+#: the ROM's first increment (5 % of 7.5 N.m = 375 N.mm on T1) ccx 2.20 aborted in the 5th iteration on the
+#: test model ("*ERROR in umat_elastic_fiber: fiber extension is too large", fatal, not a cutback); steps of
+#: 100 N.mm (`MODEL_INCREMENT_NMM`) converged in 7-10 iterations each (37.5 N.mm did not: near zero load the
+#: tension-only ligaments and fibres keep switching)
 MODEL_STEP_DEFAULTS = dict(
     nlgeom=True,
-    initial_increment=0.05,
-    min_increment=1e-4,
-    max_increment=0.1,
-    max_increments=200,
+    min_increment=1e-5,
+    max_increment=0.05,
+    max_increments=1000,
     average_force_n=500.0,
 )
+MODEL_INCREMENT_NMM = 100.0
 
 
 def load_vector_nmm(model: RomModel, case: str, moment_nmm: float) -> np.ndarray:
@@ -166,7 +170,7 @@ def model_load_text(
     body of vertebra `top` rigid (its hex nodes; its posterior skin hangs on it by the connectors: a rigid
     body holding shell nodes slowed ccx's Newton iterations to a stall) and loaded with `moment_nmm` (N.mm)
     about its anatomical axis of `case`, one NLGEOM step with the ROM's convergence controls (`step_kw`:
-    those of `rom_deck_text`; default the config's), ROT NODE rotations (rad) printed to the .dat file and,
+    those of `rom_deck_text`; default `MODEL_STEP_DEFAULTS`, first increment 100 N.mm), ROT NODE rotations (rad) printed to the .dat file and,
     if node_file, displacements to the .frd file.  Solve with ``ccx -i <job>``."""
     from spinecohort.fe.export import fixed_set
     from spinecohort.rom.submodel import vertebra_frame
@@ -182,7 +186,8 @@ def model_load_text(
     rigid = np.arange(inf * n2, (sup + 1) * n2)
     frame = vertebra_frame(template, fe.nodes, top)[0]
     axis, sign = LOAD_CASES[case]
-    kw = {**MODEL_STEP_DEFAULTS, **step_kw}
+    first = min(MODEL_INCREMENT_NMM / moment_nmm, MODEL_STEP_DEFAULTS["max_increment"])
+    kw = {**MODEL_STEP_DEFAULTS, "initial_increment": first, **step_kw}
     text = pure_moment_text(
         fe.nodes, {top: rigid}, top, fe.node_sets[fixed_set(fe)], {}, sign * moment_nmm * frame[:, axis], **kw
     )
