@@ -51,7 +51,8 @@ def main(argv=None) -> int:
 
     from spinecohort.fe.export import materials_from_config
     from spinecohort.mesh.template import HexTemplate
-    from spinecohort.rom.analysis import all_effect, solve_model, validate, validation_figure
+    from spinecohort.rom.analysis import all_effect, validate, validation_figure
+    from spinecohort.rom.run import solve_model
 
     cfg = yaml.safe_load(Path(args.config).read_text())
     rom = dict(cfg["rom"])

@@ -288,6 +288,16 @@ def test_export_from_an_unpacked_release_equals_export_from_results(test_run, pr
     assert main(["export", "model_00013", "--release", str(pristine), "--out", str(tmp_path / "release.inp")]) == 0
     assert (tmp_path / "release.inp").read_bytes() == (tmp_path / "results.inp").read_bytes()
     assert main(["export", "model_00013", "--release", str(tmp_path), "--out", str(tmp_path / "x.inp")]) == 2
+    # --load: the same model data, then a pure-moment step (2 N.m right lateral bending on L1, pelvis fixed)
+    load = tmp_path / "load.inp"
+    args = ["export", "model_00013", "--release", str(pristine), "--load", "lateral_right", "--top", "L1"]
+    assert main(args + ["--moment-nm", "2", "--out", str(load)]) == 0
+    text, plain = load.read_text(), (tmp_path / "release.inp").read_text()
+    assert text.split("*HEADING")[1].split("** pure moment")[0] == plain.split("*HEADING")[1]
+    step = text.split("** pure moment")[1]
+    assert "*RIGID BODY, NSET=RB_L1" in step and "*BOUNDARY\nFIXED, 1, 3" in step and "*STEP, NLGEOM" in step
+    cload = [float(line.split(",")[2]) for line in step.split("*CLOAD\n")[1].split("*")[0].splitlines()]
+    assert sum(c * c for c in cload) ** 0.5 == pytest.approx(2000.0, rel=1e-6)  # N.mm
 
 
 def test_cli_verify_and_unpack(bag, tmp_path, capsys):

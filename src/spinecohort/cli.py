@@ -113,6 +113,9 @@ def _export(args: argparse.Namespace) -> int:
         faces(),
         hex_type,
         materials=materials_from_config(src["fe"] if args.release else fe_cfg),
+        load=args.load,
+        moment_nmm=1000.0 * args.moment_nm,
+        top=args.top,
     )
     print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {vm.repair}")
     return 0
@@ -239,8 +242,8 @@ def _personalize(args: argparse.Namespace) -> int:
         t = targets.get(p, float("nan"))
         print(f"{p:<12}{t:>10.3f}{res.achieved[p]:>10.3f}{res.achieved[p] - t:>9.3f}  {UNITS.get(p, '')}")
     if args.out:
-        from spinecohort.fe.abaqus import write_inp, write_vtu
-        from spinecohort.fe.export import fe_model, materials_from_config
+        from spinecohort.fe.abaqus import write_vtu
+        from spinecohort.fe.export import fe_model, materials_from_config, write_deck
         from spinecohort.mesh.hex_ssm import HexSSM
         from spinecohort.mesh.template import HexTemplate
 
@@ -262,11 +265,12 @@ def _personalize(args: argparse.Namespace) -> int:
             hex_type=cfg["template"]["hex_type"],
             heading=heading,
             materials=materials_from_config(cfg.get("fe")),
+            connectors=args.out.suffix != ".vtu",  # a picture: no connector lines
         )
         if args.out.suffix == ".vtu":
             write_vtu(fe, args.out)
         elif args.out.suffix == ".inp":
-            write_inp(fe, args.out, provenance=heading)
+            write_deck(fe, args.out, provenance=heading)
         else:
             raise ValueError(f"--out {args.out}: use a .inp or .vtu file name")
         print(f"-> {args.out}; Jacobian check: { {k: v for k, v in rep.items() if k != 'level_offsets_mm'} }")
@@ -334,6 +338,14 @@ def main(argv: list[str] | None = None) -> int:
         help="build from a downloaded release (the bag folder) instead of "
         "the results; needs neither config nor Snakemake",
     )
+    e.add_argument(
+        "--load",
+        choices=["flexion", "extension", "lateral_left", "lateral_right", "axial_left", "axial_right"],
+        help="(inp) add a pure-moment step: pelvis fixed, the moment on --top through a rigid body; solve the "
+        "deck with `ccx -i <name without .inp>` (docs/abaqus.md)",
+    )
+    e.add_argument("--moment-nm", type=float, default=7.5, help="pure moment of --load in N.m (default 7.5)")
+    e.add_argument("--top", default="T1", help="the loaded vertebra of --load (T1 ... L5, default T1)")
     e.set_defaults(func=_export)
 
     v = sub.add_parser(

@@ -22,4 +22,4 @@ with to_file(snakemake.log[0]) as log:
         len(template.elsets),
     )
     template.save(snakemake.output.npz)
-    write_vtu(fe_model(template), snakemake.output.vtu)
+    write_vtu(fe_model(template, connectors=False), snakemake.output.vtu)

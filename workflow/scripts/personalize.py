@@ -8,8 +8,7 @@ import pandas as pd
 
 from spinecohort.atomic import atomic_write
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.abaqus import write_inp
-from spinecohort.fe.export import fe_model, materials_from_config
+from spinecohort.fe.export import fe_model, materials_from_config, write_deck
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate
@@ -47,7 +46,7 @@ with to_file(snakemake.log[0]) as log:
             f"posture {row['posture_deg']:.3f} deg"
         )
         if row["ID"] in out:
-            write_inp(
+            write_deck(
                 fe_model(template, pts, hex_type=snakemake.params.hex_type, heading=heading, materials=materials),
                 out[row["ID"]],
                 provenance=heading,

@@ -6,7 +6,7 @@ from spinecohort.fe.calculix import find_ccx
 from spinecohort.fe.export import materials_from_config
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.analysis import solve_model
+from spinecohort.rom.run import solve_model
 
 with to_file(snakemake.log[0]) as log:
     find_ccx()  # a clear error naming the Debian package before any work

@@ -1,8 +1,7 @@
 # Adapter: the Abaqus/CalculiX deck of the morphed mean, "Mean_Model (Template).inp".
 import numpy as np
 
-from spinecohort.fe.abaqus import write_inp
-from spinecohort.fe.export import fe_model, materials_from_config
+from spinecohort.fe.export import fe_model, materials_from_config, write_deck
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
 
@@ -17,4 +16,4 @@ with to_file(snakemake.log[0]):
         heading="spinecohort mean model (template)",
         materials=materials_from_config(snakemake.params.fe),
     )
-    write_inp(model, snakemake.output[0], provenance="mean of the SSM, morphed hex template")
+    write_deck(model, snakemake.output[0], provenance="mean of the SSM, morphed hex template")

@@ -200,7 +200,7 @@ def fibre_ground_substance(model_data: str) -> str:
     """The deck with every ``ELASTIC_FIBER`` user material replaced by its ground substance
     (*HYPERELASTIC, NEO HOOKE with the same C10, D1).  ccx 2.20 crashes (segmentation fault) in a
     `*NO ANALYSIS` step as soon as an element uses the built-in fibre law, so the data check runs on the
-    ground substance; the fibre law itself is exercised by the analyses that solve (spinecohort.rom.analysis)."""
+    ground substance; the fibre law itself is exercised by the analyses that solve (spinecohort.rom.run)."""
 
     def repl(m):
         consts = [c for c in re.split(r"[,\s]+", m[2].strip()) if c]

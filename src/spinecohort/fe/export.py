@@ -17,7 +17,7 @@ below equal config/config.yaml, each with its literature source:
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
   switchable.  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
   export deck uses one table per group at the group's mean rest length in the model; the ROM decks
-  (`spinecohort.rom.analysis`) use one table per ligament element.
+  (`spinecohort.rom.submodel`) use one table per ligament element.
 """
 
 from __future__ import annotations
@@ -97,6 +97,10 @@ DEFAULT_LIGAMENTS = {
 }
 DEFAULT_MATERIALS = FEMaterials()
 ANNULUS_MATERIAL = "ELASTIC_FIBER_AF"  # ccx selects its built-in law by this name prefix
+#: the annulus element of every deck: ccx 2.20's ELASTIC_FIBER law aborts with C3D8/C3D8I (docs/rom.md)
+ANNULUS_HEX_TYPE = "C3D8R"
+#: node sets by which an exported deck is fixed, in order of preference
+FIXED_SETS = ("PELVIS", "EP_SUP_S1")
 
 
 def materials_from_config(fe: dict | None) -> FEMaterials:
@@ -206,11 +210,23 @@ def fe_model(
     include_all: bool | None = None,
     heading: str = "spinecohort model",
     materials: FEMaterials | None = None,
+    annulus_hex_type: str | None = ANNULUS_HEX_TYPE,
+    connectors: bool = True,
 ) -> FEModel:
-    """The template as an FEModel with the given node coordinates (default: the template's own).
+    """The template as an FEModel with the given node coordinates (default: the template's own): one
+    connected mechanical body (`spinecohort.fe.connections`).
 
+    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates, nucleus: `hex_type`), ``HEXES_AF``
+    (the annulus: `annulus_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's fibre law aborts with
+    C3D8/C3D8I), ``SURFACES`` (S3 skins), ``LIGAMENTS`` (tension-only SPRINGA), ``CONNECTORS`` (linear
+    SPRINGA, element sets ``CONN_*``).  Hex elements are therefore numbered non-annulus first, then annulus,
+    each in template order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model).
+    annulus_hex_type None: the annulus in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
+    (a deck of loose parts, for pictures only).
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
     """
+    from spinecohort.fe.connections import CONNECTOR_TABLE, model_connectors
+
     mats = DEFAULT_MATERIALS if materials is None else materials
     include_all = mats.include_all if include_all is None else include_all
     pts = template.nodes if points is None else np.asarray(points, dtype=np.float64)
@@ -219,11 +235,19 @@ def fe_model(
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
-    blocks = {
-        "HEXES": (hex_type, template.hexes),
-        "SURFACES": ("S3", template.tris),
-        "LIGAMENTS": ("SPRINGA", template.ligaments[lig_keep]),
-    }
+    annulus = np.zeros(len(template.hexes), bool)
+    if annulus_hex_type is not None and annulus_hex_type != hex_type:
+        for name, idx in template.elsets.items():
+            if template.elset_kind[name] == "hex" and name.endswith("_AF"):
+                annulus[idx] = True
+    hex_order = np.concatenate([np.flatnonzero(~annulus), np.flatnonzero(annulus)])
+    pos_of_hex = np.empty(len(template.hexes), dtype=np.int64)
+    pos_of_hex[hex_order] = np.arange(len(hex_order))
+    blocks = {"HEXES": (hex_type, template.hexes[~annulus])}
+    if annulus.any():
+        blocks["HEXES_AF"] = (annulus_hex_type, template.hexes[annulus])
+    blocks["SURFACES"] = ("S3", template.tris)
+    blocks["LIGAMENTS"] = ("SPRINGA", template.ligaments[lig_keep])
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}
     lig_new = np.cumsum(lig_keep) - 1
     elsets = {}
@@ -233,7 +257,16 @@ def fe_model(
             idx = lig_new[idx[lig_keep[idx]]]
             if len(idx) == 0:
                 continue
+        elif kind == "hex":
+            idx = np.sort(pos_of_hex[idx])
         elsets[name] = offset[kind] + np.asarray(idx)
+    conn_sets = model_connectors(template, template.nodes) if connectors else {}
+    if conn_sets:
+        first = offset["lig"] + int(lig_keep.sum())
+        blocks["CONNECTORS"] = ("SPRINGA", np.concatenate(list(conn_sets.values())))
+        for name, pairs in conn_sets.items():
+            elsets[name] = np.arange(first, first + len(pairs))
+            first += len(pairs)
     orientations = disc_orientations(template, pts)
     sections = []
     for name, kind in template.elset_kind.items():
@@ -248,16 +281,43 @@ def fe_model(
             ends = pts[template.ligaments[template.elsets[name]]]
             rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
             sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[group], rest)))
+    sections += [Section(elset=name, spring_force_elongation=CONNECTOR_TABLE) for name in conn_sets]
+    node_sets = dict(template.nsets)
+    if "PELVIS" in template.elsets and "PELVIS" not in node_sets:
+        node_sets["PELVIS"] = np.unique(template.tris[template.elsets["PELVIS"]])
     return FEModel(
         nodes=pts,
         element_blocks=blocks,
-        node_sets=dict(template.nsets),
+        node_sets=node_sets,
         element_sets=elsets,
         materials=material_cards(mats),
         sections=sections,
         heading=heading,
         orientations=list(orientations.values()),
     )
+
+
+def fixed_set(model: FEModel) -> str:
+    """The node set a user fixes the exported deck by: ``PELVIS`` (else the S1 plate ``EP_SUP_S1``)."""
+    for name in FIXED_SETS:
+        if name in model.node_sets:
+            return name
+    raise ValueError(f"the model has none of the node sets {FIXED_SETS} to fix it by")
+
+
+def write_deck(model: FEModel, path: str | Path, provenance: str = "") -> Path:
+    """Write an exported deck after checking that it is one body: every element reachable from the fixed
+    set (`fixed_set`) through load-carrying elements (`spinecohort.fe.connectivity`); raises
+    ConnectivityError naming the deck and its loose parts otherwise."""
+    check_deck(model, str(path))
+    return write_inp(model, path, provenance=provenance)
+
+
+def check_deck(model: FEModel, deck: str) -> None:
+    """The connectivity check of every exported deck (see `write_deck`); deck: its name for the message."""
+    from spinecohort.fe.connectivity import check_connected
+
+    check_connected(model, model.node_sets[fixed_set(model)], deck)
 
 
 def write_model_files(
@@ -271,7 +331,7 @@ def write_model_files(
     """Write one model as ``inp`` (Abaqus/CalculiX deck) or ``vtu``."""
     model = fe_model(template, points, heading=heading, materials=materials)
     if fmt == "inp":
-        return write_inp(model, out, provenance=heading)
+        return write_deck(model, out, provenance=heading)
     if fmt == "vtu":
         return write_vtu(model, out)
     raise ValueError(f"unknown FE format '{fmt}' (inp | vtu)")
@@ -279,6 +339,7 @@ def write_model_files(
 
 __all__ = [
     "fe_model",
+    "write_deck",
     "write_model_files",
     "ligament_table",
     "materials_from_config",

@@ -97,26 +97,41 @@ def write_model(
     faces: np.ndarray,
     hex_type: str = "C3D8",
     materials=None,
+    load: str | None = None,
+    moment_nmm: float = 7500.0,
+    top: str = "T1",
 ) -> Path:
     """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model).
 
-    materials: `spinecohort.fe.export.FEMaterials` (default: config/config.yaml's ``fe`` values)."""
+    materials: `spinecohort.fe.export.FEMaterials` (default: config/config.yaml's ``fe`` values).
+    load: an ``inp`` with a pure-moment step (`spinecohort.rom.deck.LOAD_CASES`: pelvis fixed, `moment_nmm`
+    N.mm on vertebra `top`), ready for ``ccx -i <job>``; None: the model data alone."""
     from spinecohort.cohort.stl_io import write_stl
-    from spinecohort.fe.abaqus import write_inp, write_vtu
+    from spinecohort.fe.abaqus import write_vtu
+    from spinecohort.fe.export import check_deck, write_deck
 
+    if load is not None and fmt != "inp":
+        raise ValueError(f"--load needs --format inp, not {fmt}")
     out = Path(out)
     name = f"model_{vm.model_id:05d}"
     heading = f"spinecohort {name}, weights (SD) {np.round(vm.weights, 3).tolist()}"
     if fmt == "stl":
         write_stl(out, vm.tri_points, faces, name=name)
     elif fmt == "inp":
-        write_inp(
-            fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials),
-            out,
-            provenance=heading,
-        )
+        fe = fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials)
+        if load is None:
+            write_deck(fe, out, provenance=heading)
+        else:
+            from spinecohort.rom.deck import model_load_text
+
+            check_deck(fe, str(out))
+            out.write_text(model_load_text(fe, template, load, top, moment_nmm))
     elif fmt == "vtu":
-        write_vtu(fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials), out)
+        # the picture without the connector lines (not anatomy); elements keep their deck ids (connectors are last)
+        fe = fe_model(
+            template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials, connectors=False
+        )
+        write_vtu(fe, out)
     else:
         raise ValueError(f"unknown format '{fmt}' (inp | stl | vtu)")
     return out

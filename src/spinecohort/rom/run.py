@@ -1,0 +1,320 @@
+"""Running the ROM analyses: one ccx process per load case (strict log check, one retry with smaller
+increments, the ROM at the last converged load fraction otherwise), the per-segment ROM table, and every
+configured extraction of one model (`solve_model`), configured by `Settings` (the ``rom:`` config block).
+Units: mm, N, N.mm, degrees."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.rom.deck import LOAD_CASES, rom_deck_text
+from spinecohort.rom.kinematics import segment_rotations_deg
+from spinecohort.rom.submodel import (
+    FacetContact,
+    RomError,
+    RomModel,
+    check_elements,
+    extract_rom_model,
+    parse_unit,
+)
+
+log = logging.getLogger(__name__)
+
+#: ccx's words for a load step it could not finish (the increment cut below its minimum, too many cutbacks)
+NONCONVERGENCE = re.compile(r"increment size smaller than minimum|too many cutbacks|divergence", re.IGNORECASE)
+
+# ccx warnings that are harmless in these analyses (anything else fails the run): none so far
+ALLOWED_WARNINGS: tuple[str, ...] = ()
+
+
+@dataclass
+class CaseResult:
+    case: str
+    rotations_deg: dict[tuple[str, str], np.ndarray]  # segment -> (lateral, anterior, cranial) components
+    top_rotation_deg: np.ndarray  # ROT NODE rotation of the top vertebra (global x, y, z)
+    curve: np.ndarray  # (T, 2): load fraction, top rotation about the load axis in degrees
+    seconds: float
+    peak_rss_mb: float
+    load_fraction: float = 1.0  # of the moment reached (< 1: ccx did not converge; ROM at that load)
+    attempts: int = 1
+
+
+def run_case(
+    model: RomModel,
+    case: str,
+    workdir: str | Path,
+    moment_nmm: float = 7500.0,
+    threads: int = 1,
+    timeout_s: float = 3600.0,
+    job: str | None = None,
+    **deck_kw,
+) -> CaseResult:
+    """Write the deck of one load case into workdir, run ccx on it (strict log check), read the ROM."""
+    from spinecohort.fe.calculix import CalculixError, CcxResult, parse_dat, run_ccx
+
+    check_elements(model)  # an inverted hex never reaches the solver
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    job = job or f"rom_{case}"
+    deck = workdir / f"{job}.inp"
+    # Non-convergence (tension-only springs and fibres switching on, a soft unit at large rotation) is a
+    # property of the load case, not a broken run: retry once with smaller increments, then keep the ROM
+    # at the last converged load fraction, flagged, instead of losing the model's other load cases.
+    retry_kw = {
+        **deck_kw,
+        "initial_increment": min(0.02, deck_kw.get("initial_increment", 0.1)),
+        "max_increment": min(0.05, deck_kw.get("max_increment", 0.25)),
+        "min_increment": min(1e-6, deck_kw.get("min_increment", 1e-4)),
+        "max_increments": max(400, deck_kw.get("max_increments", 100)),
+    }
+    seconds = peak = 0.0
+    for attempt, kw in enumerate((deck_kw, retry_kw), start=1):
+        deck.write_text(rom_deck_text(model, case, moment_nmm, **kw))
+        t0 = time.perf_counter()
+        try:
+            res = run_ccx(deck, workdir, threads=threads, timeout_s=timeout_s, allowed_warnings=ALLOWED_WARNINGS)
+        except CalculixError as exc:
+            if not NONCONVERGENCE.search(str(exc)):
+                raise
+            log.warning("%s: ccx did not converge (attempt %d): %s", deck, attempt, str(exc).splitlines()[-1])
+            dat = workdir / f"{job}.dat"
+            res = CcxResult(
+                1,
+                "",
+                parse_dat(dat.read_text()) if dat.exists() else [],
+                workdir,
+                job,
+                time.perf_counter() - t0,
+                float("nan"),
+            )
+            converged = False
+        else:
+            converged = True
+        seconds += res.seconds
+        peak = np.nanmax([peak, res.peak_rss_mb])
+        if converged:
+            break
+    rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP"]
+    ep_prints = [b for b in res.node_prints if b.node_set.upper() == "EPNODES"]
+    if not rot_prints or not ep_prints:
+        raise RomError(f"ccx run {deck} printed no displacements (log {workdir / (job + '.log')})")
+    last = ep_prints[-1]
+    if converged and abs(last.time - 1.0) > 1e-6:
+        raise RomError(f"ccx run {deck} stopped at load fraction {last.time:g}, not 1 (no convergence?)")
+    disp = {int(i) - 1: v for i, v in zip(last.node_ids, last.values)}
+    axis, sign = LOAD_CASES[case]
+    load_axis = model.frames[model.top][:, axis]
+    curve = np.array([[b.time, sign * np.degrees(b.values[0] @ load_axis)] for b in rot_prints])
+    return CaseResult(
+        case,
+        segment_rotations_deg(model, disp),
+        np.degrees(rot_prints[-1].values[0]),
+        curve,
+        seconds,
+        peak,
+        float(last.time),
+        attempt,
+    )
+
+
+def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: str) -> pd.DataFrame:
+    """One row per segment and load case: primary ROM (deg, positive in the load direction) and the
+    coupled rotations about the other two axes."""
+
+    rows = []
+    for r in results:
+        axis, sign = LOAD_CASES[r.case]
+        for (up, lo), comp in r.rotations_deg.items():
+            rows.append(
+                {
+                    "model": model_id,
+                    "mode": mode,
+                    "segment": f"{up}-{lo}",
+                    "load_case": r.case,
+                    "rom_deg": sign * comp[axis],
+                    "lateral_deg": comp[0],
+                    "anterior_deg": comp[1],
+                    "cranial_deg": comp[2],
+                    "load_fraction": r.load_fraction,
+                    "attempts": r.attempts,
+                    "solve_s": round(r.seconds, 2),
+                    "peak_rss_mb": round(r.peak_rss_mb, 1),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# one model: every extraction mode and load case
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The solver part of the ``rom:`` config block (docs/rom.md); the comparison keys (``model``,
+    ``references``, ``acceptance_sd``) are read by the comparison code, not here."""
+
+    moment_nmm: float = 7500.0
+    load_cases: tuple[str, ...] = tuple(LOAD_CASES)
+    hex_type: str = "C3D8"
+    annulus_hex_type: str = "C3D8R"
+    facets: FacetContact | None = FacetContact()
+    reference_force_n: float | None = 500.0
+    nlgeom: bool = True
+    initial_increment: float = 0.05
+    min_increment: float = 1e-4
+    max_increment: float = 0.1
+    max_increments: int = 200
+    lumbar: tuple[str, str] | None = ("T10", "S1")  # (top, bottom), None = no lumbar model
+    units: tuple[tuple[str, str], ...] = ()  # functional units (upper, lower vertebra)
+    all_effect: bool = True
+    threads: int = 2
+    timeout_s: float = 7200.0
+
+    @classmethod
+    def from_config(cls, block: dict) -> Settings:
+        """From the ``rom:`` block (keys not named here are ignored: they belong to the comparison)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        p = {k: v for k, v in block.items() if k in names}
+        lumbar = p.pop("lumbar")
+        return cls(
+            **{k: v for k, v in p.items() if k not in ("facets", "units", "load_cases")},
+            load_cases=tuple(p["load_cases"]),
+            facets=FacetContact.from_config(p["facets"]),
+            lumbar=(lumbar["top"], lumbar["bottom"]) if lumbar["enabled"] else None,
+            units=tuple(parse_unit(u) for u in p["units"]),
+        )
+
+    def deck_kw(self) -> dict:
+        """The step controls `rom_deck_text` takes."""
+        return dict(
+            nlgeom=self.nlgeom,
+            initial_increment=self.initial_increment,
+            min_increment=self.min_increment,
+            max_increment=self.max_increment,
+            max_increments=self.max_increments,
+            average_force_n=self.reference_force_n,
+        )
+
+
+def analyses(settings: Settings) -> list[tuple[str, str, str]]:
+    """(mode, top, bottom) of every ROM model the settings ask for: 'lumbar' and one 'unit' per FU."""
+    out = []
+    if settings.lumbar is not None:
+        out.append(("lumbar", *settings.lumbar))
+    for unit in settings.units:
+        out.append(("unit", *unit))
+    if not out:
+        raise ValueError("rom: neither the lumbar model nor any functional unit is enabled")
+    return out
+
+
+def solve_model(
+    template: HexTemplate,
+    points: np.ndarray,
+    settings: Settings | dict,
+    workdir: str | Path,
+    model_id: str,
+    materials: FEMaterials | None = None,
+) -> pd.DataFrame:
+    """ROM table of one model for every configured extraction and load case (plus extension without the
+    ALL if ``all_effect``).  settings: `Settings` or the config's ``rom:`` block.  Decks, ccx logs and .dat
+    files stay in ``workdir/<mode>_<top><bottom>/``.  Load cases run in parallel, ``settings.threads``
+    single-threaded ccx processes at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = settings if isinstance(settings, Settings) else Settings.from_config(settings)
+    mats = DEFAULT_MATERIALS if materials is None else materials
+    deck_kw = cfg.deck_kw()
+    jobs = []
+    for mode, top, bottom in analyses(cfg):
+        sub = Path(workdir) / f"{mode}_{top}{bottom}"
+        kw = dict(
+            materials=mats,
+            hex_type=cfg.hex_type,
+            annulus_hex_type=cfg.annulus_hex_type,
+            facets=cfg.facets,
+        )
+        variants = [
+            (
+                "intact",
+                extract_rom_model(template, points, top, bottom, heading=f"{model_id} ROM {mode} {top}-{bottom}", **kw),
+            )
+        ]
+        if cfg.all_effect and "extension" in cfg.load_cases and mats.include_all:
+            variants.append(
+                (
+                    "no_ALL",
+                    extract_rom_model(
+                        template,
+                        points,
+                        top,
+                        bottom,
+                        include_all=False,
+                        heading=f"{model_id} ROM {mode} {top}-{bottom} no ALL",
+                        **kw,
+                    ),
+                )
+            )
+        for variant, model in variants:
+            msj = check_elements(model)
+            log.info(
+                "%s %s %s-%s (%s): %d nodes, %d elements, ligaments %s, min scaled Jacobian %.3f",
+                model_id,
+                mode,
+                top,
+                bottom,
+                variant,
+                len(model.fe.nodes),
+                model.fe.n_elements,
+                model.ligament_groups,
+                msj,
+            )
+            cases = cfg.load_cases if variant == "intact" else ["extension"]
+            for case in cases:
+                jobs.append(
+                    (mode, variant, model, case, sub, f"rom_{case}" + ("" if variant == "intact" else "_noALL"))
+                )
+
+    def run(job):
+        mode, variant, model, case, sub, name = job
+        r = run_case(
+            model,
+            case,
+            sub,
+            moment_nmm=cfg.moment_nmm,
+            threads=1,
+            timeout_s=cfg.timeout_s,
+            job=name,
+            **deck_kw,
+        )
+        log.info(
+            "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments",
+            model_id,
+            mode,
+            model.top,
+            model.vertebrae[-1],
+            case,
+            variant,
+            r.seconds,
+            r.peak_rss_mb,
+            r.curve[-1, 1],
+            len(r.curve),
+        )
+        table = rom_table(model, [r], model_id, mode)
+        table.insert(2, "variant", variant)
+        table.insert(3, "unit", f"{model.top}-{model.vertebrae[-1]}")
+        return table
+
+    with ThreadPoolExecutor(max_workers=max(1, int(cfg.threads))) as pool:
+        tables = list(pool.map(run, jobs))
+    return pd.concat(tables, ignore_index=True)

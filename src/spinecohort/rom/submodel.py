@@ -1,0 +1,385 @@
+"""The ROM sub-model of a hex spine model: the vertebrae ``top`` ... ``bottom`` with their discs, ligaments,
+posterior-arch trusses and facet-joint gap elements, renumbered compactly, plus what the analysis needs to
+load it (the rigid top, the fixed bottom) and to read it (endplate node layers, anatomical frames).
+
+Units: mm, N, N.mm, degrees.
+
+What a ROM model contains (`extract_rom_model`): the conforming hex column of the bodies and the discs
+between them, every ligament whose two ends lie on the kept vertebrae and (optionally) one facet-joint gap
+element per joint.  Elements: C3D8 for bone, cartilage endplates and nucleus, C3D8R for the annulus
+(docs/rom.md: C3D8R everywhere adds no compliance in series; C3D8/C3D8I abort ccx 2.20's fibre law).
+The posterior elements are S3 skins in the template and share no node with the hex bodies; bone is ~10^4
+times stiffer than disc and ligament, so each posterior arch is modelled as rigid: a stiff truss joins its
+ligament/facet anchor nodes to each other and to the body's posterior cortical-shell nodes between its
+endplates (the pedicle base) -- the truss of `spinecohort.fe.connections`, the one the exported deck carries
+(there with the skins' own attachment nodes added); the skin elements themselves carry nothing here and are
+left out.  The sacrum and
+pelvis are fixed in vitro and here: a lumbar model fixes the S1 plate (the bottom node layer of the column);
+a functional unit fixes its whole lower vertebra (potting).  The moment acts on the top vertebra, potted
+too: one *RIGID BODY of its body and arch anchors (`spinecohort.rom.deck`).
+
+Facet joints (`FacetContact`): a GAPUNI element between the articular-process tips of each joint, closing
+along the joint's textbook normal; a stand-in for surface contact, which the S3 skins cannot provide here.
+
+Limitations (docs/rom.md): facet contact is a point gap, not surface contact; no posterior ligaments or
+facets between L5 and the sacrum (the template has no sacral anchors); no rib cage (thoracic units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spinecohort.cohort.landmarks import LEVELS
+from spinecohort.fe.abaqus import SOLID_TYPES, FEModel, Section
+from spinecohort.fe.connections import (
+    CONNECTOR_TABLE,
+    arch_nodes,
+    arch_owner,
+    body_layer,
+    posterior_wall,
+    truss_pairs,
+)
+from spinecohort.fe.export import (
+    DEFAULT_MATERIALS,
+    FEMaterials,
+    disc_orientations,
+    hex_section,
+    ligament_table,
+    material_cards,
+)
+from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
+
+COLUMN = LEVELS + ("S1",)
+#: hex sets (by name suffix) that get ``annulus_hex_type``
+ANNULUS_TYPE_TISSUES: tuple[str, ...] = ("_AF",)
+
+
+class RomError(RuntimeError):
+    """A ROM analysis cannot run (bad model, inverted element, solver failure)."""
+
+
+@dataclass
+class RomModel:
+    """A ROM submodel: its FE model (0-based indices) and what the analysis needs to load and read it."""
+
+    fe: FEModel
+    vertebrae: list[str]  # cranial -> caudal; the last one ("S1" or a vertebra) is fixed
+    endplate_nodes: dict[str, np.ndarray]  # vertebra -> its two endplate node layers (Kabsch)
+    rigid_nodes: dict[str, np.ndarray]  # the loaded top vertebra -> nodes of its rigid body
+    fixed_nodes: np.ndarray
+    frames: dict[str, np.ndarray]  # vertebra -> (3, 3) columns lateral, anterior, cranial (reference)
+    hex_elements: np.ndarray  # element indices (into fe's concatenated blocks) of the hexes
+    source_nodes: np.ndarray  # template node index of every submodel node (-1: a facet contact node)
+    ligament_groups: dict[str, int] = field(default_factory=dict)  # group -> element count
+
+    @property
+    def top(self) -> str:
+        return self.vertebrae[0]
+
+    def segments(self) -> list[tuple[str, str]]:
+        return list(zip(self.vertebrae[:-1], self.vertebrae[1:]))
+
+
+@dataclass(frozen=True)
+class FacetContact:
+    """Facet-joint contact as one gap element per joint (ccx GAPUNI) between the tips of the inferior
+    articular process (IAP, upper vertebra) and the superior articular process (SAP, lower vertebra).
+
+    The gap acts along the outward normal of the SAP's joint surface, from the textbook orientation of the
+    facet plane (White & Panjabi, Clinical Biomechanics of the Spine, 2nd ed. 1990): ``transverse_deg``, the
+    plane's angle to the transverse plane (thoracic ~60, lumbar ~90), and ``frontal_deg``, its angle to the
+    frontal plane, positive when the SAP surface faces medially (lumbar ~45), negative when it faces
+    laterally (thoracic ~-20).  Normal = sin(t) (cos(f) posterior + sin(f) medial) + cos(t) cranial in the
+    upper vertebra's anatomical frame.  Both angles are interpolated linearly over the column between the
+    anchor levels given (the upper vertebra of a segment).  clearance_mm: the initial joint gap;
+    stiffness_n_per_mm: the contact stiffness of a closed joint (cartilage)."""
+
+    clearance_mm: float = 0.5
+    stiffness_n_per_mm: float = 200.0
+    transverse_deg: tuple[tuple[str, float], ...] = (("T1", 60.0), ("T10", 60.0), ("T12", 90.0), ("L5", 90.0))
+    frontal_deg: tuple[tuple[str, float], ...] = (("T1", -20.0), ("T10", -20.0), ("T12", 45.0), ("L5", 45.0))
+
+    @staticmethod
+    def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
+        xs = [LEVELS.index(lv) for lv, _ in anchors]
+        if xs != sorted(xs):
+            raise ValueError(f"facet angle anchors must run cranial to caudal, got {anchors}")
+        return float(np.interp(LEVELS.index(level), xs, [a for _, a in anchors]))
+
+    def angles_deg(self, level: str) -> tuple[float, float]:
+        """(transverse, frontal) angle (deg) of the joints of the segment whose upper vertebra is `level`."""
+        return self._interp(self.transverse_deg, level), self._interp(self.frontal_deg, level)
+
+    def normal(self, level: str, frame: np.ndarray, side: float) -> np.ndarray:
+        """Unit normal (SAP -> IAP) of a joint on `side` (+1 right, -1 left) of vertebra `level`, whose frame
+        has the columns lateral (right), anterior, cranial."""
+        t, f = np.radians(self.angles_deg(level))
+        medial = -side * frame[:, 0]
+        n = np.sin(t) * (np.cos(f) * -frame[:, 1] + np.sin(f) * medial) + np.cos(t) * frame[:, 2]
+        return n / np.linalg.norm(n)
+
+    @classmethod
+    def from_config(cls, cfg: dict | None) -> FacetContact | None:
+        """From the config's ``rom.facets`` block (None or ``enabled: false`` -> no contact)."""
+        if not cfg or not cfg.get("enabled", True):
+            return None
+        return cls(
+            float(cfg["clearance_mm"]),
+            float(cfg["stiffness_n_per_mm"]),
+            tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
+            tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()),
+        )
+
+
+def facet_gaps(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
+) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
+    """((clearance, direction, stiffness), elset name) of each facet pair (IAP tip of the upper vertebra,
+    SAP tip of the lower), in the order of `pairs`; direction from the SAP towards the IAP."""
+    owner = arch_owner(template)
+    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs[:, 0]}}
+    out = []
+    for iap, sap in pairs:
+        up, lo = owner[int(iap)], owner[int(sap)]
+        frame, centre = frames[up]
+        side = 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0  # +1 right
+        n = facets.normal(up, frame, side)
+        name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
+        out.append(((facets.clearance_mm, tuple(map(float, n)), facets.stiffness_n_per_mm), name))
+    return out
+
+
+def column_levels(top: str, bottom: str) -> list[str]:
+    """Vertebrae from ``top`` down to ``bottom`` (``S1`` allowed), cranial first."""
+    if top not in LEVELS or bottom not in COLUMN or COLUMN.index(bottom) <= COLUMN.index(top):
+        raise ValueError(f"ROM segment {top}..{bottom}: need a vertebra T1..L5 above a vertebra or S1")
+    return list(COLUMN[COLUMN.index(top) : COLUMN.index(bottom) + 1])
+
+
+def parse_unit(name: str) -> tuple[str, str]:
+    """'T10T11' or 'T10-T11' -> ('T10', 'T11')."""
+    import re
+
+    m = re.fullmatch(r"([TL]\d{1,2})-?([TL]\d{1,2}|S1)", name)
+    if not m:
+        raise ValueError(f"'{name}' is not a functional unit like T10T11 or L5S1")
+    return m[1], m[2]
+
+
+def extract_rom_model(
+    template: HexTemplate,
+    points: np.ndarray,
+    top: str,
+    bottom: str,
+    materials: FEMaterials | None = None,
+    hex_type: str = "C3D8",
+    include_all: bool | None = None,
+    heading: str = "",
+    ligament_groups: tuple[str, ...] | None = None,
+    annulus_hex_type: str | None = "C3D8R",
+    facets: FacetContact | None = None,
+) -> RomModel:
+    """The ROM submodel of vertebrae ``top``..``bottom`` (see the module docstring) with the model's
+    coordinates ``points`` (N, 3) mm in template node order.
+
+    hex_type: element of bone, cartilage endplates and nucleus; annulus_hex_type: element of the annulus
+    (None: the same as hex_type); see docs/rom.md for why they differ.
+    ligament_groups: the groups to keep (default all, ALL per ``include_all``); () = discs alone.
+    facets: facet-joint contact as one GAPUNI element per facet joint (`FacetContact`); None = no contact."""
+    mats = DEFAULT_MATERIALS if materials is None else materials
+    include_all = mats.include_all if include_all is None else include_all
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape != template.nodes.shape:
+        raise ValueError(f"points have shape {points.shape}, the template has {template.nodes.shape}")
+    verts = column_levels(top, bottom)
+    n2, nq = len(template.grid.nodes), len(template.grid.quads)
+    lo = 0 if bottom == "S1" else body_layer(template, bottom, 0.0)
+    hi = body_layer(template, top, 1.0)
+    hex_ids = (np.arange(lo, hi)[:, None] * nq + np.arange(nq)[None, :]).ravel()
+    hex_nodes = np.arange(lo * n2, (hi + 1) * n2)
+    bones = [v for v in verts if v != "S1"]
+    arch = {v: arch_nodes(template, v) for v in bones}
+    # ligaments whose two ends are on the kept hex layers or on the kept arches
+    lig_group = np.empty(len(template.ligaments), dtype=object)
+    for g in LIGAMENT_GROUPS:
+        lig_group[template.elsets[f"LIG_{g}"]] = g
+    allowed = np.zeros(len(template.nodes), bool)
+    allowed[hex_nodes] = True
+    for v in bones:
+        allowed[arch[v]] = True
+    keep_lig = allowed[template.ligaments].all(axis=1)
+    if not include_all:
+        keep_lig &= lig_group != "ALL"
+    if ligament_groups is not None:
+        keep_lig &= np.isin(lig_group, list(ligament_groups))
+    ligs = template.ligaments[keep_lig]
+    groups = lig_group[keep_lig]
+    # facet joints: the capsular-ligament anchors (inferior articular process tip of the upper vertebra,
+    # superior articular process tip of the lower one) of every segment in the model
+    facet_pairs = np.zeros((0, 2), dtype=np.int64)
+    if facets is not None:
+        cl = template.ligaments[template.elsets["LIG_CL"]]
+        facet_pairs = cl[allowed[cl].all(axis=1)]
+    # arch anchors actually used, per vertebra
+    anchors = {v: np.intersect1d(arch[v], ligs.ravel()) for v in bones}
+    surf = np.unique(np.concatenate([np.zeros(0, np.int64), *anchors.values()]))
+    source = np.concatenate([hex_nodes, surf])
+    new_of = np.full(len(template.nodes), -1, dtype=np.int64)
+    new_of[source] = np.arange(len(source))
+    pts = points[source]
+    # each facet joint: two coincident nodes at the midpoint of the two process tips, one tied to each
+    # vertebra's arch.  Coincident, so that a rigid rotation of the whole joint (L3 turns ~12 deg in the
+    # lumbar model) does not open or close the gap, as it did between the two tips 12 mm apart.
+    owner = arch_owner(template)
+    extra_tied: dict[str, list[int]] = {v: [] for v in bones}
+    facet_conn = np.zeros((0, 2), dtype=np.int64)
+    if len(facet_pairs):
+        mid = 0.5 * (points[facet_pairs[:, 0]] + points[facet_pairs[:, 1]])
+        first_new = len(pts)
+        pts = np.concatenate([pts, mid, mid])
+        upper_side = first_new + np.arange(len(facet_pairs))
+        lower_side = upper_side + len(facet_pairs)
+        for (iap, sap), u, lw in zip(facet_pairs, upper_side, lower_side):
+            extra_tied[owner[int(iap)]].append(int(u))
+            extra_tied[owner[int(sap)]].append(int(lw))
+        facet_conn = np.stack([lower_side, upper_side], 1)  # GAPUNI node 1 = SAP side, node 2 = IAP side
+        source = np.concatenate([source, np.full(2 * len(facet_pairs), -1)])
+
+    # annulus hexes last, in their own block when their element type differs
+    annulus = np.zeros(len(template.hexes), bool)
+    for name, idx in template.elsets.items():
+        if template.elset_kind[name] == "hex" and name.endswith(ANNULUS_TYPE_TISSUES):
+            annulus[idx] = True
+    annulus_hex_type = annulus_hex_type or hex_type
+    if annulus_hex_type != hex_type:
+        hex_ids = np.concatenate([hex_ids[~annulus[hex_ids]], hex_ids[annulus[hex_ids]]])
+    hexes = new_of[template.hexes[hex_ids]]
+    lig_conn = new_of[ligs]
+    if annulus_hex_type != hex_type:
+        n_af = int(annulus[hex_ids].sum())
+        blocks = {"HEXES": (hex_type, hexes[:-n_af]), "HEXES_AF": (annulus_hex_type, hexes[-n_af:])}
+    else:
+        blocks = {"HEXES": (hex_type, hexes)}
+    elsets: dict[str, np.ndarray] = {}
+    pos_of_hex = np.full(len(template.hexes), -1, dtype=np.int64)
+    pos_of_hex[hex_ids] = np.arange(len(hex_ids))
+    orientations = disc_orientations(template, points)
+    sections, used_orient = [], set()
+    for name, idx in template.elsets.items():
+        if template.elset_kind[name] != "hex":
+            continue
+        sub = pos_of_hex[idx]
+        sub = sub[sub >= 0]
+        if len(sub) == 0:
+            continue
+        elsets[name] = np.sort(sub)
+        sec = hex_section(name, orientations)
+        sections.append(sec)
+        if sec.orientation:
+            used_orient.add(sec.orientation)
+    lig_counts: dict[str, int] = {}
+    if len(lig_conn):
+        blocks["LIGAMENTS"] = ("SPRINGA", lig_conn)
+        rest = np.linalg.norm(pts[lig_conn[:, 1]] - pts[lig_conn[:, 0]], axis=1)
+        for i, (g, length) in enumerate(zip(groups, rest)):
+            name = f"LIG_{g}_{i + 1}"
+            elsets[name] = np.array([len(hexes) + i])
+            sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[g], length)))
+            lig_counts[g] = lig_counts.get(g, 0) + 1
+    if len(facet_pairs):
+        first = len(hexes) + len(lig_conn)
+        blocks["FACETS"] = ("GAPUNI", facet_conn)
+        for i, (gap, name) in enumerate(facet_gaps(template, points, facet_pairs, facets)):
+            elsets[name] = np.array([first + i])
+            sections.append(Section(elset=name, gap=gap))
+        lig_counts["FACET"] = len(facet_pairs)
+
+    endplates, frames, rigid = {}, {}, {}
+    arch_springs: list[tuple[str, np.ndarray]] = []
+    for v in verts:
+        if v == "S1":
+            ep = np.arange(n2)
+            frames[v] = fit_endplate(points[ep]).frame
+            endplates[v] = new_of[ep]
+            continue
+        inf_l, sup_l = body_layer(template, v, 0.0), body_layer(template, v, 1.0)
+        inf, sup = inf_l * n2 + np.arange(n2), sup_l * n2 + np.arange(n2)
+        endplates[v] = new_of[np.concatenate([inf, sup])]
+        frames[v] = vertebra_frame(template, points, v)[0]
+        wall = new_of[posterior_wall(template, v)]
+        a = np.concatenate([new_of[anchors[v]], np.asarray(extra_tied[v], dtype=np.int64)])
+        tied = np.concatenate([wall, a])
+        # the loaded top and a unit's fixed bottom vertebra are potted in vitro: the whole vertebra (body
+        # and arch) is rigid.  With only its superior endplate rigid, ccx's Newton iterations stalled next
+        # to the rigid body once the top had turned > 13 deg (lumbar flexion, docs/rom.md).
+        body = new_of[np.arange(inf_l * n2, (sup_l + 1) * n2)]
+        if v == verts[-1]:
+            fixed = np.unique(np.concatenate([tied, body]))
+        elif v == top:
+            rigid[v] = np.unique(np.concatenate([tied, body]))
+        elif len(a):
+            # an intermediate arch: a stiff truss from every anchor to every posterior-wall node and between
+            # the anchors.  Seven *RIGID BODY arches in the lumbar model stalled ccx's Newton iterations
+            # (flexion: 14 -> 43 iterations per increment, no convergence past 35 % of the load, discs
+            # alone); without them, 10 per increment to the full load (docs/rom.md).
+            pairs = truss_pairs(a, wall)
+            arch_springs.append((v, pairs))
+    if bottom == "S1":
+        fixed = new_of[np.arange(n2)]
+    if arch_springs:
+        first = sum(len(c) for _, c in blocks.values())
+        blocks["ARCHES"] = ("SPRINGA", np.concatenate([p for _, p in arch_springs]))
+        for v, p in arch_springs:
+            elsets[f"ARCH_{v}"] = np.arange(first, first + len(p))
+            sections.append(Section(elset=f"ARCH_{v}", spring_force_elongation=CONNECTOR_TABLE))
+            first += len(p)
+    fe = FEModel(
+        nodes=pts,
+        element_blocks=blocks,
+        node_sets={},
+        element_sets=elsets,
+        materials=material_cards(mats),
+        sections=sections,
+        heading=heading or f"spinecohort ROM model {top}-{bottom}",
+        orientations=[o for o in orientations.values() if o.name in used_orient],
+    )
+    return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(len(hexes)), source, lig_counts)
+
+
+def vertebra_frame(template: HexTemplate, points: np.ndarray, level: str) -> tuple[np.ndarray, np.ndarray]:
+    """Anatomical frame (3, 3: columns lateral, anterior, cranial) of a vertebra, between its two endplate
+    frames, and the centre (mm) of its endplate nodes."""
+    n2 = len(template.grid.nodes)
+    inf, sup = (body_layer(template, level, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
+    frame = mean_frame(fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame)
+    return frame, points[np.concatenate([inf, sup])].mean(0)
+
+
+def mean_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Orthonormal frame (columns lateral, anterior, cranial) between two endplate frames."""
+    n = a[:, 2] + b[:, 2]
+    n /= np.linalg.norm(n)
+    x = a[:, 0] + b[:, 0]
+    x -= np.dot(x, n) * n
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(n, x), n], 1)
+
+
+def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
+    """Refuse a model with an inverted (or too distorted) hex before the solver is called; returns the
+    minimum scaled Jacobian."""
+    from spinecohort.mesh.quality import scaled_jacobian
+
+    hexes = np.concatenate([c for t, c in model.fe.element_blocks.values() if t in SOLID_TYPES])
+    sj = scaled_jacobian(model.fe.nodes, hexes)
+    bad = int((sj <= min_scaled_jacobian).sum())
+    if bad:
+        worst = int(np.argmin(sj))
+        raise RomError(
+            f"{bad} hex element(s) of the ROM model {model.top}-{model.vertebrae[-1]} have a scaled "
+            f"Jacobian <= {min_scaled_jacobian} (min {sj.min():.3f} at element {worst + 1}): inverted "
+            f"or degenerate; refusing to run the solver"
+        )
+    return float(sj.min())
