@@ -28,8 +28,8 @@ from spinecohort.rom.analysis import (
     kabsch_rotations,
     rom_deck_text,
     run_case,
-    validate,
 )
+from spinecohort.rom.compare import accepted_interval, orderings, validate
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_CCX = shutil.which("ccx") is not None
@@ -180,6 +180,76 @@ def test_validate_judges_mean_sd_and_ranges():
         v.loc["b", "model_deg"] == 6.5 and v.loc["b", "in_range"] and v.loc["b", "distance_deg"] == pytest.approx(-1.1)
     )
     assert not v.loc["c", "in_range"] and v.loc["c", "distance_deg"] == pytest.approx(2.5)
+
+
+def test_calibration_criterion_is_one_sd_and_rib_corrected_ranges_and_reports_the_seed_criterion():
+    # Niosi L3-L4 flexion 3.7 +- 1.5: 1 SD accepts 2.2..5.2, 2 SD (seed) 0.7..6.7; ours 1.6 is out / in.
+    # Wilke T2-T3 axial rotation range 10..12 with rib heads, corrected by +11 % / +19 %: 11.1..14.28;
+    # ours 13.0 is in, but out of the raw range (the seed criterion).
+    table = pd.DataFrame(
+        {
+            "mode": "unit",
+            "variant": "intact",
+            "segment": ["L3-L4"] * 2 + ["T2-T3"] * 2,
+            "load_case": ["flexion", "extension", "axial_left", "axial_right"],
+            "rom_deg": [1.6, 4.2, 6.4, 6.6],
+        }
+    )
+    refs = [
+        dict(
+            source="n",
+            segment="L3-L4",
+            motion="flexion",
+            side="one",
+            moment_nmm=7500.0,
+            statistic="mean_sd",
+            value=3.7,
+            sd=1.5,
+        ),
+        dict(
+            source="w",
+            segment="T2-T3",
+            motion="axial_rotation",
+            side="full",
+            moment_nmm=7500.0,
+            statistic="range",
+            low=10.0,
+            high=12.0,
+            rib_heads=True,
+        ),
+    ]
+    ribs = {"flexion_extension": (0.07, 0.07), "lateral_bending": (0.10, 0.12), "axial_rotation": (0.11, 0.19)}
+    v = validate(table, refs, 7500.0, 1.0, ribs, 2.0).set_index("source")
+    assert (v.loc["n", "accept_low"], v.loc["n", "accept_high"]) == pytest.approx((2.2, 5.2))
+    assert (v.loc["n", "seed_low"], v.loc["n", "seed_high"]) == pytest.approx((0.7, 6.7))
+    assert not v.loc["n", "in_range"] and v.loc["n", "in_range_seed"]
+    assert v.loc["w", "model_deg"] == pytest.approx(13.0)
+    assert (v.loc["w", "accept_low"], v.loc["w", "accept_high"]) == pytest.approx((11.1, 14.28))
+    assert (v.loc["w", "seed_low"], v.loc["w", "seed_high"]) == pytest.approx((10.0, 12.0))
+    assert v.loc["w", "in_range"] and not v.loc["w", "in_range_seed"]
+    # a range reference without rib heads is not widened
+    lo, hi, _, text = accepted_interval({**refs[1], "rib_heads": False}, 1.0, ribs)
+    assert (lo, hi, text) == (10.0, 12.0, "range")
+    # the ordering check: flexion 1.6 < extension 4.2 is flagged (Niosi: 3.7 > 3.3)
+    o = orderings(table, ["L3-L4"], mode="unit").iloc[0]
+    assert o["flexion_minus_extension_deg"] == pytest.approx(-2.6) and not o["flexion_gt_extension"]
+
+
+def test_sensitivity_parameters_set_one_leaf_or_scale_every_matched_one():
+    from spinecohort.rom.sensitivity import parameter_value, variants, with_parameter
+
+    cfg = {"fe": {"ligaments": {"ISL": {"area_mm2": 40.0}, "SSL": {"area_mm2": 30.0}}, "k1": 1.8}, "rom": {}}
+    assert parameter_value(with_parameter(cfg, "fe.k1", 1.2), "fe.k1") == [1.2]
+    assert parameter_value(
+        with_parameter(cfg, "fe.ligaments.*.area_mm2", 0.5, scale=True), "fe.ligaments.*.area_mm2"
+    ) == [20.0, 15.0]
+    assert parameter_value(cfg, "fe.k1") == [1.8]  # the calibrated config is not modified
+    cfg["rom"]["sensitivity"] = {
+        "parameters": [{"name": "k1", "path": "fe.k1", "low": 1.0, "high": 2.0, "source": "s"}]
+    }
+    assert [(n, lv, v) for n, lv, v, _ in variants(cfg)][1:] == [("k1", "low", 1.0), ("k1", "high", 2.0)]
+    with pytest.raises(KeyError, match="no key 'k3'"):
+        with_parameter(cfg, "fe.k3", 1.0)
 
 
 def test_rom_submodel_of_a_functional_unit(template):
