@@ -201,6 +201,10 @@ class Layout:
         return self.path("rom", "all_effect.csv")
 
     @property
+    def rom_validation_md(self) -> str:
+        return self.path("rom", "validation.md")
+
+    @property
     def rom_orderings(self) -> str:
         return self.path("rom", "orderings.csv")
 

@@ -34,6 +34,7 @@ rule rom_validation:
         table=L.rom_validation,
         all_effect=L.rom_all_effect,
         orderings=L.rom_orderings,
+        markdown=L.rom_validation_md,
         figure=L.rom_validation_png,
     log:
         f"{LOGS}/rom_validation.log",

@@ -4,12 +4,14 @@ import pandas as pd
 
 from spinecohort.figures import validation_figure
 from spinecohort.logs import to_file
-from spinecohort.rom.compare import all_effect, orderings, validate_from_config
+from spinecohort.rom.compare import all_effect, orderings, validate_from_config, validation_markdown
 
 with to_file(snakemake.log[0]) as log:
     table = pd.read_csv(snakemake.input[0])
     val = validate_from_config(table, snakemake.params.rom)
     val.to_csv(snakemake.output.table, index=False)
+    with open(snakemake.output.markdown, "w") as f:
+        f.write(validation_markdown(val))
     all_effect(table).to_csv(snakemake.output.all_effect, index=False)
     order = orderings(table, mode="lumbar" if (table["mode"] == "lumbar").any() else "unit")
     order.to_csv(snakemake.output.orderings, index=False)

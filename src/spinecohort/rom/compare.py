@@ -155,3 +155,35 @@ def validate_from_config(table: pd.DataFrame, rom: dict) -> pd.DataFrame:
         {k: tuple(v) for k, v in rom["rib_correction"].items()},
         rom["seed_acceptance_sd"],
     )
+
+
+def validation_markdown(val: pd.DataFrame) -> str:
+    """The validation table as the Markdown docs/rom.md shows (so the documented table is the code's own
+    output): ours, reference, both criteria, in range, distance from the criterion's centre."""
+
+    def ref_text(r) -> str:
+        if r.ref_statistic == "mean_sd":
+            return f"{r.ref_value:g} ± {r.ref_sd:g}"
+        return f"{r.ref_low:g}–{r.ref_high:g}"
+
+    def yes(v) -> str:
+        return "—" if v is None or (isinstance(v, float) and np.isnan(v)) else ("yes" if bool(v) else "no")
+
+    lines = [
+        "| segment | motion | side | mode | ours (deg) | reference | criterion | accepted | in range | "
+        "seed criterion (±2 SD / raw) | in range (seed) | ours − centre |",
+        "|---|---|---|---|--:|---|---|---|---|---|---|--:|",
+    ]
+    for r in val.itertuples():
+        lines.append(
+            f"| {r.segment} | {r.motion} | {r.side} | {r.mode} | {r.model_deg:.2f} | {ref_text(r)} | {r.criterion} | "
+            f"{r.accept_low:.2f}–{r.accept_high:.2f} | {yes(r.in_range)} | {r.seed_low:.2f}–{r.seed_high:.2f} | "
+            f"{yes(r.in_range_seed)} | {r.distance_deg:+.2f} |"
+        )
+    judged = val["in_range"].notna()
+    lines.append("")
+    lines.append(
+        f"In range: {int(val.loc[judged, 'in_range'].astype(bool).sum())} of {int(judged.sum())} judged "
+        f"(seed criterion: {int(val.loc[judged, 'in_range_seed'].astype(bool).sum())})."
+    )
+    return "\n".join(lines) + "\n"
