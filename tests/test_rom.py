@@ -245,6 +245,12 @@ def test_sensitivity_parameters_set_one_leaf_or_scale_every_matched_one():
     assert parameter_value(
         with_parameter(cfg, "fe.ligaments.*.area_mm2", 0.5, scale=True), "fe.ligaments.*.area_mm2"
     ) == [20.0, 15.0]
+    assert parameter_value(
+        with_parameter(cfg, "fe.ligaments.SSL|ISL.area_mm2", 2.0, True), "fe.ligaments.*.area_mm2"
+    ) == [
+        80.0,
+        60.0,
+    ]
     assert parameter_value(cfg, "fe.k1") == [1.8]  # the calibrated config is not modified
     cfg["rom"]["sensitivity"] = {
         "parameters": [{"name": "k1", "path": "fe.k1", "low": 1.0, "high": 2.0, "source": "s"}]

@@ -3,6 +3,16 @@
 # the compared ROM to the calibrated parameters; the ROM of the mean and of each shape mode at its extremes.
 from spinecohort.rom.modes import mode_models
 
+ROM_REPORT_KEYS = (
+    "model",
+    "acceptance_sd",
+    "seed_acceptance_sd",
+    "rib_correction",
+    "references",
+    "sensitivity",
+    "mode_levels",
+)
+
 
 rule rom_model:
     input:
@@ -21,7 +31,8 @@ rule rom_model:
         "../../environment.yml"
     threads: config["rom"]["threads"]
     params:
-        rom=config["rom"],
+        # only what the solver reads: editing references, criteria or the sensitivity list reruns nothing
+        rom={k: v for k, v in config["rom"].items() if k not in ROM_REPORT_KEYS},
         fe=config["fe"],
     script:
         "../scripts/rom_model.py"

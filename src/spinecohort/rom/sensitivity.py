@@ -7,7 +7,7 @@ and compared with the references (`spinecohort.rom.compare.validate_from_config`
 each compared ROM changes (deg) at each end: what drives what, measured rather than guessed.
 
 A parameter is a dotted path into ``{"fe": <fe block>, "rom": <rom block>}``; ``*`` matches every key at
-that level (e.g. ``fe.ligaments.*.area_mm2``).  ``scale: true`` makes low/high factors on the calibrated
+that level (e.g. ``fe.ligaments.*.area_mm2``), ``a|b`` the keys a and b (``fe.ligaments.ISL|SSL.area_mm2``).  ``scale: true`` makes low/high factors on the calibrated
 value(s) instead of values.  Units: degrees, and the units of each parameter.
 """
 
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 def _leaves(node, keys: list[str]):
     """(parent dict, key) of every leaf a dotted path with ``*`` wildcards names."""
     head, rest = keys[0], keys[1:]
-    names = list(node) if head == "*" else [head]
+    names = list(node) if head == "*" else head.split("|")
     for k in names:
         if k not in node:
             raise KeyError(f"no key '{k}' (of {list(node)})")
@@ -102,9 +102,15 @@ def sensitivity(
     orderings (flexion - extension, lateral - axial, deg) of the L units as rows with motion
     ``flexion_minus_extension`` / ``lateral_minus_axial``."""
     rows = []
+    base_table = None
     for name, level, value, vcfg in variants(cfg):
         sub = Path(workdir) / (name if level == "calibrated" else f"{name}_{level}")
-        table = solve_variant(template, points, vcfg, sub, model_id)
+        if base_table is not None and vcfg == cfg:  # a parameter calibrated at one end of its range
+            table = base_table
+        else:
+            table = solve_variant(template, points, vcfg, sub, model_id)
+        if level == "calibrated":
+            base_table = table
         val = validate_from_config(table, unit_rom_config(vcfg["rom"]))
         frac = float(table["load_fraction"].min())
         for r in val.itertuples():
