@@ -12,7 +12,8 @@ with to_file(snakemake.log[0]) as log:
     find_ccx()
     template = HexTemplate.load(snakemake.input.template)
     _, points = read_inp_nodes(snakemake.input.deck)
-    cfg = {"fe": snakemake.params.fe, "rom": snakemake.params.rom}
+    rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
+    cfg = {"fe": snakemake.params.fe, "rom": rom}
     table = sensitivity(template, points, cfg, snakemake.output.runs, snakemake.params.model)
     table.to_csv(snakemake.output.table, index=False)
     rom_sensitivity_figure(table, snakemake.output.figure)

@@ -55,7 +55,8 @@ def accepted_interval(
     if ref.get("rib_heads") and rib_correction:
         f_lo, f_hi = rib_correction[PLANE_OF[ref["motion"]]]
         low, high = low * (1.0 + f_lo), high * (1.0 + f_hi)
-        text = f"range x (1+{f_lo:g} .. 1+{f_hi:g}) without rib heads"
+        pct = f"+{100 * f_lo:.0f} %" if f_lo == f_hi else f"+{100 * f_lo:.0f} / +{100 * f_hi:.0f} %"
+        text = f"range {pct} (no rib heads)"
         return low, high, 0.5 * (low + high), text
     return low, high, float(ref.get("value", 0.5 * (low + high))), "range"
 
