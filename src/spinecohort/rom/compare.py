@@ -50,7 +50,7 @@ def accepted_interval(
     none (``ref['rib_heads']``)."""
     if ref["statistic"] == "mean_sd":
         c, s = float(ref["value"]), float(ref["sd"])
-        return c - acceptance_sd * s, c + acceptance_sd * s, c, f"mean +- {acceptance_sd:g} SD"
+        return c - acceptance_sd * s, c + acceptance_sd * s, c, f"mean ± {acceptance_sd:g} SD"
     low, high = float(ref["low"]), float(ref["high"])
     if ref.get("rib_heads") and rib_correction:
         f_lo, f_hi = rib_correction[PLANE_OF[ref["motion"]]]
@@ -175,16 +175,22 @@ def validation_markdown(val: pd.DataFrame) -> str:
         "seed criterion (±2 SD / raw) | in range (seed) | ours − centre |",
         "|---|---|---|---|--:|---|---|---|---|---|---|--:|",
     ]
+
+    def num(v: float, fmt: str) -> str:
+        return "—" if not np.isfinite(v) else format(v, fmt)
+
     for r in val.itertuples():
         lines.append(
-            f"| {r.segment} | {r.motion} | {r.side} | {r.mode} | {r.model_deg:.2f} | {ref_text(r)} | {r.criterion} | "
+            f"| {r.segment} | {r.motion} | {r.side} | {r.mode} | {num(r.model_deg, '.2f')} | {ref_text(r)} | {r.criterion} | "
             f"{r.accept_low:.2f}–{r.accept_high:.2f} | {yes(r.in_range)} | {r.seed_low:.2f}–{r.seed_high:.2f} | "
-            f"{yes(r.in_range_seed)} | {r.distance_deg:+.2f} |"
+            f"{yes(r.in_range_seed)} | {num(r.distance_deg, '+.2f')} |"
         )
     judged = val["in_range"].notna()
+    short = int((~judged).sum())
     lines.append("")
     lines.append(
         f"In range: {int(val.loc[judged, 'in_range'].astype(bool).sum())} of {int(judged.sum())} judged "
-        f"(seed criterion: {int(val.loc[judged, 'in_range_seed'].astype(bool).sum())})."
+        f"(seed criterion: {int(val.loc[judged, 'in_range_seed'].astype(bool).sum())})"
+        + (f"; {short} not judged (a load case short of the full moment, or another moment)." if short else ".")
     )
     return "\n".join(lines) + "\n"
