@@ -459,6 +459,7 @@ def rom_deck_text(
     max_increments: int = 100,
     provenance: str = "",
     average_force_n: float | None = None,
+    correction_tolerance: float = 0.01,
 ) -> str:
     """The complete ccx deck of one load case: model data, rigid bodies, fixation, one static step with
     the pure moment on the top's ROT NODE, node prints of every endplate node and the ROT NODE."""
@@ -507,8 +508,11 @@ def rom_deck_text(
             # force.  Under a pure moment that average is ~0.3 N (soft tissue, few loaded nodes), so the
             # criterion asked for 0.002 N on rigid-body resultants and stalled the lumbar runs for dozens
             # of iterations per increment; a user-defined reference force fixes the scale (docs/rom.md).
+            # correction_tolerance: ccx's C_n (largest displacement correction / largest increment); the
+            # run_case's last attempt relaxes it, the residual criterion stays
             parts.append(
-                f"*CONTROLS, PARAMETERS=FIELD\n0.005, 0.01, 0.01, {average_force_n!r}, 0.02, 1e-5, 1e-3, 1e-8\n"
+                f"*CONTROLS, PARAMETERS=FIELD\n0.005, {correction_tolerance!r}, 0.01, {average_force_n!r}, "
+                "0.02, 1e-5, 1e-3, 1e-8\n"
             )
     parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in range(3)))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n*NODE PRINT, NSET=EPNODES\nU\n*END STEP\n")
@@ -629,8 +633,14 @@ def run_case(
         "min_increment": min(1e-6, deck_kw.get("min_increment", 1e-4)),
         "max_increments": max(400, deck_kw.get("max_increments", 100)),
     }
+    # Last resort, measured on the T6-T7 unit's right lateral bending (stuck at 99.3 % of the load in both
+    # attempts: the Newton iterations cycled between three states, residual 5e-4 N but 100 % displacement
+    # correction, a gap or fibre family switching): keep the residual criterion (0.5 % of the reference force)
+    # and relax only the displacement-correction one (C_n 0.01 -> 2); the run then reaches the full load and
+    # agrees with the strict one to 0.001 deg at the load both reached (docs/rom.md).
+    relaxed_kw = {**deck_kw, "correction_tolerance": 2.0}
     seconds = peak = 0.0
-    for attempt, kw in enumerate((deck_kw, retry_kw), start=1):
+    for attempt, kw in enumerate((deck_kw, retry_kw, relaxed_kw), start=1):
         deck.write_text(rom_deck_text(model, case, moment_nmm, **kw))
         t0 = time.perf_counter()
         try:
