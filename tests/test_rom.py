@@ -682,6 +682,8 @@ def test_sensitivity_and_mode_figures_are_written(tmp_path):
             "change_deg": [0.0, 0.4, -0.3],
         }
     )
+    # a comparison without a value in any variant (a case short of the full load) must not break the figure
+    sens = pd.concat([sens, sens.assign(segment="T6-T7", change_deg=float("nan"))], ignore_index=True)
     assert rom_sensitivity_figure(sens, tmp_path / "s.png").stat().st_size > 5_000
     modes = pd.DataFrame(
         {

@@ -926,8 +926,9 @@ def rom_sensitivity_figure(sens: pd.DataFrame, path: str | Path) -> Path:
     d["row"] = d["parameter"] + " " + d["level"] + " (" + d["value"].map("{:g}".format) + ")"
     d["col"] = d["segment"] + " " + d["motion"].str.replace("_", " ") + " (" + d["side"] + ")"
     order_cols = list(dict.fromkeys(d["col"]))
-    m = d.pivot_table(index="row", columns="col", values="change_deg", sort=False)[order_cols]
-    m = m.reindex(list(dict.fromkeys(d["row"])))
+    # a comparison without value in every variant (a case short of the full load) stays as an empty column
+    m = d.pivot_table(index="row", columns="col", values="change_deg", sort=False, dropna=False)
+    m = m.reindex(index=list(dict.fromkeys(d["row"])), columns=order_cols)
     lim = max(float(np.nanmax(np.abs(m.to_numpy()))), 0.1)
     fig, ax = plt.subplots(figsize=(0.75 * m.shape[1] + 4, 0.32 * m.shape[0] + 2.5))
     im = ax.imshow(m.to_numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
