@@ -50,8 +50,9 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(asctime)s %(message)s")
 
     from spinecohort.fe.export import materials_from_config
+    from spinecohort.figures import validation_figure
     from spinecohort.mesh.template import HexTemplate
-    from spinecohort.rom.analysis import all_effect, validate, validation_figure
+    from spinecohort.rom.compare import all_effect, validate_from_config
     from spinecohort.rom.run import solve_model
 
     cfg = yaml.safe_load(Path(args.config).read_text())
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
     table = solve_model(template, points, rom, out / model, model, materials_from_config(cfg["fe"]))
     wall = time.perf_counter() - t0
     table.to_csv(out / f"{model}.csv", index=False)
-    val = validate(table, rom["references"], rom["moment_nmm"], rom["acceptance_sd"])
+    val = validate_from_config(table, rom)
     val.to_csv(out / "validation.csv", index=False)
     all_effect(table).to_csv(out / "all_effect.csv", index=False)
     validation_figure(val, out / "validation.png", title=model)
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
     print("\nvalidation:")
     print(
         val[
-            ["segment", "motion", "side", "mode", "model_deg", "accept_low", "accept_high", "in_range", "distance_deg"]
+            ["segment", "motion", "side", "mode", "model_deg", "accept_low", "accept_high", "in_range", "in_range_seed"]
         ].to_string()
     )
     print(f"\nwritten to {out}")

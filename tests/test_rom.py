@@ -18,7 +18,7 @@ from spinecohort.fe.abaqus import FEModel, LinearElastic, Section, read_inp_node
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.analysis import validate
+from spinecohort.rom.compare import accepted_interval, orderings, validate, validation_markdown
 from spinecohort.rom.deck import rom_deck_text
 from spinecohort.rom.run import Settings, run_case
 from spinecohort.rom.submodel import (
@@ -181,6 +181,84 @@ def test_validate_judges_mean_sd_and_ranges():
         v.loc["b", "model_deg"] == 6.5 and v.loc["b", "in_range"] and v.loc["b", "distance_deg"] == pytest.approx(-1.1)
     )
     assert not v.loc["c", "in_range"] and v.loc["c", "distance_deg"] == pytest.approx(2.5)
+
+
+def test_calibration_criterion_is_one_sd_and_rib_corrected_ranges_and_reports_the_seed_criterion():
+    # Niosi L3-L4 flexion 3.7 +- 1.5: 1 SD accepts 2.2..5.2, 2 SD (seed) 0.7..6.7; ours 1.6 is out / in.
+    # Wilke T2-T3 axial rotation range 10..12 with rib heads, corrected by +11 % / +19 %: 11.1..14.28;
+    # ours 13.0 is in, but out of the raw range (the seed criterion).
+    table = pd.DataFrame(
+        {
+            "mode": "unit",
+            "variant": "intact",
+            "segment": ["L3-L4"] * 2 + ["T2-T3"] * 2,
+            "load_case": ["flexion", "extension", "axial_left", "axial_right"],
+            "rom_deg": [1.6, 4.2, 6.4, 6.6],
+        }
+    )
+    refs = [
+        dict(
+            source="n",
+            segment="L3-L4",
+            motion="flexion",
+            side="one",
+            moment_nmm=7500.0,
+            statistic="mean_sd",
+            value=3.7,
+            sd=1.5,
+        ),
+        dict(
+            source="w",
+            segment="T2-T3",
+            motion="axial_rotation",
+            side="full",
+            moment_nmm=7500.0,
+            statistic="range",
+            low=10.0,
+            high=12.0,
+            rib_heads=True,
+        ),
+    ]
+    ribs = {"flexion_extension": (0.07, 0.07), "lateral_bending": (0.10, 0.12), "axial_rotation": (0.11, 0.19)}
+    v = validate(table, refs, 7500.0, 1.0, ribs, 2.0).set_index("source")
+    assert (v.loc["n", "accept_low"], v.loc["n", "accept_high"]) == pytest.approx((2.2, 5.2))
+    assert (v.loc["n", "seed_low"], v.loc["n", "seed_high"]) == pytest.approx((0.7, 6.7))
+    assert not v.loc["n", "in_range"] and v.loc["n", "in_range_seed"]
+    assert v.loc["w", "model_deg"] == pytest.approx(13.0)
+    assert (v.loc["w", "accept_low"], v.loc["w", "accept_high"]) == pytest.approx((11.1, 14.28))
+    assert (v.loc["w", "seed_low"], v.loc["w", "seed_high"]) == pytest.approx((10.0, 12.0))
+    assert v.loc["w", "in_range"] and not v.loc["w", "in_range_seed"]
+    md = validation_markdown(v.reset_index())
+    assert "| 2.20–5.20 | no | 0.70–6.70 | yes |" in md and "In range: 1 of 2 judged (seed criterion: 1)." in md
+    # a range reference without rib heads is not widened
+    lo, hi, _, text = accepted_interval({**refs[1], "rib_heads": False}, 1.0, ribs)
+    assert (lo, hi, text) == (10.0, 12.0, "range")
+    # the ordering check: flexion 1.6 < extension 4.2 is flagged (Niosi: 3.7 > 3.3)
+    o = orderings(table, ["L3-L4"], mode="unit").iloc[0]
+    assert o["flexion_minus_extension_deg"] == pytest.approx(-2.6) and not o["flexion_gt_extension"]
+
+
+def test_sensitivity_parameters_set_one_leaf_or_scale_every_matched_one():
+    from spinecohort.rom.sensitivity import parameter_value, variants, with_parameter
+
+    cfg = {"fe": {"ligaments": {"ISL": {"area_mm2": 40.0}, "SSL": {"area_mm2": 30.0}}, "k1": 1.8}, "rom": {}}
+    assert parameter_value(with_parameter(cfg, "fe.k1", 1.2), "fe.k1") == [1.2]
+    assert parameter_value(
+        with_parameter(cfg, "fe.ligaments.*.area_mm2", 0.5, scale=True), "fe.ligaments.*.area_mm2"
+    ) == [20.0, 15.0]
+    assert parameter_value(
+        with_parameter(cfg, "fe.ligaments.SSL|ISL.area_mm2", 2.0, True), "fe.ligaments.*.area_mm2"
+    ) == [
+        80.0,
+        60.0,
+    ]
+    assert parameter_value(cfg, "fe.k1") == [1.8]  # the calibrated config is not modified
+    cfg["rom"]["sensitivity"] = {
+        "parameters": [{"name": "k1", "path": "fe.k1", "low": 1.0, "high": 2.0, "source": "s"}]
+    }
+    assert [(n, lv, v) for n, lv, v, _ in variants(cfg)][1:] == [("k1", "low", 1.0), ("k1", "high", 2.0)]
+    with pytest.raises(KeyError, match="no key 'k3'"):
+        with_parameter(cfg, "fe.k3", 1.0)
 
 
 def test_rom_submodel_of_a_functional_unit(template):
@@ -400,7 +478,7 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
     deck.write_text(text.split("*NODE, NSET=RBNODES")[0])
     for card in (
         "*ELASTIC\n12000.0, 0.3",
-        "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.005",
+        "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.0111",
         "*ELEMENT, TYPE=C3D8, ELSET=HEXES",
         "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_AF",
         "*USER MATERIAL, CONSTANTS=10",
@@ -412,6 +490,13 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
     ):
         assert card in text, card
     assert "No analysis was selected" in check_input(deck, tmp_path / "check").log
+    # the residual criterion is 0.5 % of the reference force; run_case's last attempt relaxes only the
+    # displacement-correction criterion C_n (0.01 -> 2)
+    assert "*CONTROLS, PARAMETERS=FIELD\n0.005, 0.01, 0.01, 500.0," in rom_deck_text(
+        m, "flexion", 7500.0, average_force_n=500.0
+    )
+    relaxed = rom_deck_text(m, "flexion", 7500.0, average_force_n=500.0, correction_tolerance=2.0)
+    assert "*CONTROLS, PARAMETERS=FIELD\n0.005, 2.0, 0.01, 500.0," in relaxed
 
 
 @needs_ccx
@@ -487,31 +572,29 @@ def test_rom_rules_solve_one_lumbar_unit_nonlinear(rom_run):
     val = pd.read_csv(r / "validation.csv")
     assert set(val["motion"]) == {"flexion", "extension", "lateral_bending", "axial_rotation"}  # Niosi rows
     assert (r / "validation.png").stat().st_size > 10_000
+    assert (r / "orderings.csv").exists()
 
 
-#: the test config's L3-L4 unit ROM (deg) per load case, as the code computes it; a change of the model or
-#: of the analysis (materials, connectors, facets, kinematics, solver controls) fails the test below until
-#: the table is refreshed deliberately:
-#:   SPINECOHORT_REFRESH_ROM_REGRESSION=1 .venv/bin/python -m pytest tests/test_rom.py -k regression
-ROM_REGRESSION = ROOT / "tests" / "data" / "rom_unit_regression.csv"
-#: ccx is deterministic (same deck, same numbers at 1 and 2 threads); 0.05 deg allows the last printed digits
-ROM_REGRESSION_TOL_DEG = 0.05
+REGRESSION = ROOT / "tests" / "data" / "rom_regression_model_00013.csv"
 
 
-def test_rom_of_the_test_unit_matches_the_stored_regression_table(rom_run):
+def test_rom_of_the_test_unit_equals_the_stored_table(rom_run):
+    # A refactor must not change the mechanics silently: the test config's L3-L4 unit ROM equals the stored
+    # table to 0.01 deg (ccx is deterministic: the same deck gives the same .dat).  When the model is meant
+    # to change (materials, elements, extraction), refresh it deliberately:
+    #   SPINECOHORT_REFRESH_ROM_REGRESSION=1 python -m pytest tests/test_rom.py -k stored_table
     import os
 
     table = pd.read_csv(rom_run / "results" / "rom" / "model_00013.csv")
-    ours = table[(table["variant"] == "intact")][["segment", "load_case", "rom_deg", "load_fraction"]]
-    ours = ours.sort_values(["segment", "load_case"]).reset_index(drop=True)
+    now = table[table["variant"] == "intact"][["segment", "load_case", "rom_deg", "load_fraction"]]
     if os.environ.get("SPINECOHORT_REFRESH_ROM_REGRESSION"):
-        ROM_REGRESSION.parent.mkdir(exist_ok=True)
-        ours.round(4).to_csv(ROM_REGRESSION, index=False)
-    stored = pd.read_csv(ROM_REGRESSION)
-    assert ours[["segment", "load_case"]].values.tolist() == stored[["segment", "load_case"]].values.tolist()
-    assert (ours["load_fraction"] == stored["load_fraction"]).all()  # every case reached the same load
-    diff = np.abs(ours["rom_deg"].to_numpy() - stored["rom_deg"].to_numpy())
-    assert diff.max() <= ROM_REGRESSION_TOL_DEG, pd.concat([ours, stored["rom_deg"].rename("stored")], axis=1)
+        REGRESSION.parent.mkdir(exist_ok=True)
+        now.round(4).to_csv(REGRESSION, index=False)
+    stored = pd.read_csv(REGRESSION).set_index(["segment", "load_case"]).sort_index()
+    now = now.set_index(["segment", "load_case"]).sort_index()
+    assert list(now.index) == list(stored.index)
+    np.testing.assert_allclose(now["rom_deg"], stored["rom_deg"], atol=0.01)
+    assert (now["load_fraction"] == 1.0).all()  # every case reaches the full 7.5 N.m
 
 
 @needs_ccx
@@ -552,3 +635,78 @@ def test_rom_settings_from_the_config():
     assert s.moment_nmm == 7500.0 and len(s.load_cases) == 6 and s.facets == FacetContact.from_config(cfg["facets"])
     assert s.deck_kw()["average_force_n"] == cfg["reference_force_n"]
     assert Settings.from_config({**cfg, "lumbar": {**cfg["lumbar"], "enabled": False}}).lumbar is None
+
+
+def test_mode_study_models_are_the_mean_and_each_mode_at_its_extremes():
+    from spinecohort.rom.modes import mode_models
+
+    m = mode_models(5, [-3, -2, -1, 0, 1, 2, 3], [-3.0, 3.0])
+    # model_id = sum_i (w_i + 3) 7^(5 - i): the mean 3 * (2401 + 343 + 49 + 7 + 1) = 8403; mode 1 at -3 SD
+    # takes 3 * 2401 off it (1200), at +3 SD adds it (15606); mode 5 moves the last digit (8400, 8406)
+    assert len(m) == 11 and m.iloc[0].tolist() == ["model_08403", 0, 0.0]
+    by = {(r.shape_mode, r.weight_sd): r.model for r in m.itertuples()}
+    assert by[(1, -3.0)] == "model_01200" and by[(1, 3.0)] == "model_15606"
+    assert by[(5, -3.0)] == "model_08400" and by[(5, 3.0)] == "model_08406"
+
+
+def test_mode_table_keeps_a_model_short_of_the_full_load_and_runs_each_mode_through_the_mean():
+    from spinecohort.rom.modes import gather, mode_models, summary
+
+    models = mode_models(1, [-3, 0, 3], [-3.0, 3.0])  # model_00001 (mean), model_00000, model_00002
+
+    def table(rom, fraction):
+        return pd.DataFrame(
+            {
+                "model": "m",
+                "mode": "unit",
+                "variant": ["intact", "intact", "no_ALL"],
+                "unit": "L3-L4",
+                "segment": "L3-L4",
+                "load_case": ["flexion", "extension", "extension"],
+                "rom_deg": [rom, 2.0, 2.5],
+                "load_fraction": [fraction, 1.0, 1.0],
+                "solve_s": [3.0, 4.0, 4.0],
+            }
+        )
+
+    t = [table(3.0, 1.0), table(2.0, 0.75), table(4.0, 1.0)]
+    for k, name in enumerate(models["model"]):
+        t[k]["model"] = name
+    g = gather(models, t, [10.0, 20.0, 30.0])
+    assert set(g["variant"]) == {"intact"}  # the ALL variant is not part of the mode study
+    flex = g[(g["load_case"] == "flexion")].set_index("weight_sd")["rom_deg"]
+    assert flex.to_dict() == {-3.0: 2.0, 0.0: 3.0, 3.0: 4.0}  # the mean appears as weight 0 of mode 1
+    s = summary(g).set_index("model")
+    assert s.loc["model_00000", "min_load_fraction"] == 0.75 and s.loc["model_00000", "cases_short_of_full_load"] == 1
+    assert s.loc["model_00001", "solve_s"] == 7.0 and s["cpu_s"].sum() == 60.0
+
+
+def test_sensitivity_and_mode_figures_are_written(tmp_path):
+    from spinecohort.figures import rom_modes_figure, rom_sensitivity_figure
+
+    sens = pd.DataFrame(
+        {
+            "parameter": ["baseline", "k1", "k1"],
+            "level": ["calibrated", "low", "high"],
+            "value": [float("nan"), 1.0, 2.0],
+            "segment": "L3-L4",
+            "motion": "flexion",
+            "side": "one",
+            "change_deg": [0.0, 0.4, -0.3],
+        }
+    )
+    # a comparison without a value in any variant (a case short of the full load) must not break the figure
+    sens = pd.concat([sens, sens.assign(segment="T6-T7", change_deg=float("nan"))], ignore_index=True)
+    assert rom_sensitivity_figure(sens, tmp_path / "s.png").stat().st_size > 5_000
+    modes = pd.DataFrame(
+        {
+            "shape_mode": [1, 1, 1, 1, 1, 1] * 3,
+            "weight_sd": [-3.0] * 6 + [0.0] * 6 + [3.0] * 6,
+            "mode": "unit",
+            "segment": "L3-L4",
+            "load_case": ["flexion", "extension", "lateral_left", "lateral_right", "axial_left", "axial_right"] * 3,
+            "rom_deg": np.arange(18.0),
+            "load_fraction": [1.0] * 17 + [0.5],
+        }
+    )
+    assert rom_modes_figure(modes, tmp_path / "m.png").stat().st_size > 5_000

@@ -200,6 +200,34 @@ class Layout:
     def rom_all_effect(self) -> str:
         return self.path("rom", "all_effect.csv")
 
+    @property
+    def rom_validation_md(self) -> str:
+        return self.path("rom", "validation.md")
+
+    @property
+    def rom_orderings(self) -> str:
+        return self.path("rom", "orderings.csv")
+
+    @property
+    def rom_sensitivity(self) -> str:
+        return self.path("rom", "sensitivity.csv")
+
+    @property
+    def rom_sensitivity_png(self) -> str:
+        return self.path("rom", "sensitivity.png")
+
+    @property
+    def rom_sensitivity_dir(self) -> str:
+        return self.path("rom", "sensitivity")
+
+    @property
+    def rom_modes(self) -> str:
+        return self.path("rom", "modes.csv")
+
+    @property
+    def rom_modes_png(self) -> str:
+        return self.path("rom", "modes.png")
+
     # bookkeeping
     def benchmark(self, rule: str, key: str | None = None) -> str:
         """Snakemake's benchmark table of a rule (``benchmarks/<rule>.tsv`` or ``benchmarks/<rule>/<key>.tsv``)."""

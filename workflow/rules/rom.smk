@@ -1,5 +1,17 @@
 # Stage 9: FE validation. Range of motion of one model under pure moments in CalculiX (lumbar model
-# pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/rom.md).
+# pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/rom.md); the sensitivity of
+# the compared ROM to the calibrated parameters; the ROM of the mean and of each shape mode at its extremes.
+from spinecohort.rom.modes import mode_models
+
+ROM_REPORT_KEYS = (
+    "model",
+    "acceptance_sd",
+    "seed_acceptance_sd",
+    "rib_correction",
+    "references",
+    "sensitivity",
+    "mode_levels",
+)
 
 
 rule rom_model:
@@ -19,7 +31,8 @@ rule rom_model:
         "../../environment.yml"
     threads: config["rom"]["threads"]
     params:
-        rom=config["rom"],
+        # only what the solver reads: editing references, criteria or the sensitivity list reruns nothing
+        rom={k: v for k, v in config["rom"].items() if k not in ROM_REPORT_KEYS},
         fe=config["fe"],
     script:
         "../scripts/rom_model.py"
@@ -31,6 +44,8 @@ rule rom_validation:
     output:
         table=L.rom_validation,
         all_effect=L.rom_all_effect,
+        orderings=L.rom_orderings,
+        markdown=L.rom_validation_md,
         figure=L.rom_validation_png,
     log:
         f"{LOGS}/rom_validation.log",
@@ -44,3 +59,52 @@ rule rom_validation:
         model=config["rom"]["model"],
     script:
         "../scripts/rom_validation.py"
+
+
+rule rom_sensitivity:
+    input:
+        deck=L.model_file(config["rom"]["model"], "inp"),
+        template=L.template,
+    output:
+        table=L.rom_sensitivity,
+        figure=L.rom_sensitivity_png,
+        runs=directory(L.rom_sensitivity_dir),
+    log:
+        f"{LOGS}/rom_sensitivity.log",
+    benchmark:
+        L.benchmark("rom_sensitivity")
+    conda:
+        "../../environment.yml"
+    threads: config["rom"]["threads"]
+    params:
+        rom=config["rom"],
+        fe=config["fe"],
+        model=config["rom"]["model"],
+    script:
+        "../scripts/rom_sensitivity.py"
+
+
+# The cohort's mechanics: the mean and each shape mode at rom.mode_levels (not in rule all: ~7 min per model)
+MODE_MODELS = mode_models(
+    config["grid"]["n_modes"], config["grid"]["levels"], config["rom"]["mode_levels"]
+)
+
+
+rule rom_modes:
+    input:
+        tables=[L.rom_table(m) for m in MODE_MODELS["model"]],
+        benchmarks=[L.benchmark("rom_model", m) for m in MODE_MODELS["model"]],
+    output:
+        table=L.rom_modes,
+        figure=L.rom_modes_png,
+    log:
+        f"{LOGS}/rom_modes.log",
+    benchmark:
+        L.benchmark("rom_modes")
+    conda:
+        "../../environment.yml"
+    threads: 1
+    params:
+        models=MODE_MODELS.to_dict("list"),
+    script:
+        "../scripts/rom_modes.py"

@@ -17,10 +17,12 @@ with to_file(snakemake.log[0]) as log:
             f"{snakemake.input.deck}: {len(points)} nodes with ids {ids[:3]}..., but the template "
             f"{snakemake.input.template} has {template.n_nodes} nodes numbered 1..N"
         )
+    # at most as many parallel ccx runs as the scheduler gave this job (--set-threads, --cores)
+    rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
     table = solve_model(
         template,
         points,
-        snakemake.params.rom,
+        rom,
         snakemake.output.runs,
         snakemake.wildcards.model_id,
         materials_from_config(snakemake.params.fe),

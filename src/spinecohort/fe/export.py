@@ -58,7 +58,7 @@ class FEMaterials:
     cancellous: tuple[float, float] = (100.0, 0.2)
     cep: tuple[float, float] = (24.0, 0.4)
     shell_thickness_mm: float = 1.0  # posterior elements, sacrum, pelvis (S3, cortical material)
-    nucleus: tuple[float, float, float] = (0.12, 0.03, 0.005)  # C10, C01 MPa, D1 1/MPa (K 400 MPa)
+    nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0111)  # C10, C01 MPa, D1 1/MPa (K 180 MPa)
     annulus_c10_mpa: float = 0.225
     annulus_d1_per_mpa: float = 0.46  # from nu = 0.45 of the ground substance at mu = 0.45 MPa
     fibre_k1_mpa: float = 1.8
@@ -85,15 +85,17 @@ class FEMaterials:
         )
 
 
-#: Goel et al. 1995 bilinear ligaments (E1, E2 MPa, transition strain, area mm^2), via Kim et al. 2013.
+#: bilinear ligaments (E1, E2 MPa, transition strain, area mm^2): moduli of Goel et al. 1995 via Kim et al. 2013;
+#: areas calibrated inside the published range (config/config.yaml, docs/rom.md): ALL and CL Goel's, the others
+#: the low end (doi:10.1155/2020/8858686 Table 2)
 DEFAULT_LIGAMENTS = {
     "ALL": LigamentLaw(7.8, 20.0, 0.12, 63.7),
-    "PLL": LigamentLaw(10.0, 20.0, 0.11, 20.0),
-    "LF": LigamentLaw(15.0, 19.5, 0.062, 40.0),
+    "PLL": LigamentLaw(10.0, 20.0, 0.11, 7.0),
+    "LF": LigamentLaw(15.0, 19.5, 0.062, 14.1),
     "CL": LigamentLaw(7.5, 32.9, 0.25, 30.0),
-    "ITL": LigamentLaw(10.0, 58.7, 0.18, 1.8),
-    "ISL": LigamentLaw(10.0, 11.6, 0.14, 40.0),
-    "SSL": LigamentLaw(8.0, 15.0, 0.20, 30.0),
+    "ITL": LigamentLaw(10.0, 58.7, 0.18, 0.6),
+    "ISL": LigamentLaw(10.0, 11.6, 0.14, 14.1),
+    "SSL": LigamentLaw(8.0, 15.0, 0.20, 10.5),
 }
 DEFAULT_MATERIALS = FEMaterials()
 ANNULUS_MATERIAL = "ELASTIC_FIBER_AF"  # ccx selects its built-in law by this name prefix

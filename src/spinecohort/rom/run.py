@@ -30,8 +30,12 @@ from spinecohort.rom.submodel import (
 
 log = logging.getLogger(__name__)
 
-#: ccx's words for a load step it could not finish (the increment cut below its minimum, too many cutbacks)
-NONCONVERGENCE = re.compile(r"increment size smaller than minimum|too many cutbacks|divergence", re.IGNORECASE)
+#: ccx's words for a load step it could not finish (the increment cut below its minimum, too many cutbacks),
+#: and the solver wrapper's for a run stopped at rom.timeout_s (a step crawling in 1e-5 increments near a
+#: limit load): both keep the ROM at the last converged load fraction, flagged, rather than losing the model
+NONCONVERGENCE = re.compile(
+    r"increment size smaller than minimum|too many cutbacks|divergence|timed out after", re.IGNORECASE
+)
 
 # ccx warnings that are harmless in these analyses (anything else fails the run): none so far
 ALLOWED_WARNINGS: tuple[str, ...] = ()
@@ -67,9 +71,15 @@ def run_case(
     workdir.mkdir(parents=True, exist_ok=True)
     job = job or f"rom_{case}"
     deck = workdir / f"{job}.inp"
-    # Non-convergence (tension-only springs and fibres switching on, a soft unit at large rotation) is a
-    # property of the load case, not a broken run: retry once with smaller increments, then keep the ROM
-    # at the last converged load fraction, flagged, instead of losing the model's other load cases.
+    # Non-convergence (tension-only springs, facet gaps and fibres switching, a soft unit at large rotation)
+    # is a property of the load case, not a broken run.  Second attempt, measured on the T6-T7 unit's right
+    # lateral bending (stuck at 99.3 % of the load with the strict criterion and with smaller increments: the
+    # Newton iterations cycled between three states, residual 5e-4 N but a 100 % displacement correction):
+    # keep the residual criterion (0.5 % of the reference force) and relax only the displacement-correction
+    # one (C_n 0.01 -> 2); it reached the full load and agreed with the strict run to 0.001 deg at the load
+    # both reached (docs/rom.md).  Third: strict again with smaller increments.  Then keep the ROM at the last
+    # converged load fraction, flagged, instead of losing the model's other load cases.
+    relaxed_kw = {**deck_kw, "correction_tolerance": 2.0}
     retry_kw = {
         **deck_kw,
         "initial_increment": min(0.02, deck_kw.get("initial_increment", 0.1)),
@@ -78,7 +88,7 @@ def run_case(
         "max_increments": max(400, deck_kw.get("max_increments", 100)),
     }
     seconds = peak = 0.0
-    for attempt, kw in enumerate((deck_kw, retry_kw), start=1):
+    for attempt, kw in enumerate((deck_kw, relaxed_kw, retry_kw), start=1):
         deck.write_text(rom_deck_text(model, case, moment_nmm, **kw))
         t0 = time.perf_counter()
         try:

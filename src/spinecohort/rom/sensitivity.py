@@ -1,0 +1,154 @@
+"""Sensitivity of the compared ROM to every calibrated parameter (config ``rom.sensitivity``).
+
+Each parameter is set, one at a time, to the low and the high end of its published range (the rest at the
+calibrated config values); the model's functional units (``rom.sensitivity.units``, the thoracic units and
+L3-L4) are solved with the same code path as the rule ``rom_model`` (`spinecohort.rom.run.solve_model`)
+and compared with the references (`spinecohort.rom.compare.validate_from_config`).  The table says how much
+each compared ROM changes (deg) at each end: what drives what, measured rather than guessed.
+
+A parameter is a dotted path into ``{"fe": <fe block>, "rom": <rom block>}``; ``*`` matches every key at
+that level (e.g. ``fe.ligaments.*.area_mm2``), ``a|b`` the keys a and b (``fe.ligaments.ISL|SSL.area_mm2``).  ``scale: true`` makes low/high factors on the calibrated
+value(s) instead of values.  Units: degrees, and the units of each parameter.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from spinecohort.fe.export import materials_from_config
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.rom.compare import orderings, validate_from_config
+from spinecohort.rom.run import solve_model
+
+log = logging.getLogger(__name__)
+
+
+def _leaves(node, keys: list[str]):
+    """(parent dict, key) of every leaf a dotted path with ``*`` wildcards names."""
+    head, rest = keys[0], keys[1:]
+    names = list(node) if head == "*" else head.split("|")
+    for k in names:
+        if k not in node:
+            raise KeyError(f"no key '{k}' (of {list(node)})")
+        if rest:
+            yield from _leaves(node[k], rest)
+        else:
+            yield node, k
+
+
+def with_parameter(cfg: dict, path: str, value: float, scale: bool = False) -> dict:
+    """A deep copy of ``cfg`` with the leaf (or leaves) at ``path`` set to ``value`` (or multiplied by it)."""
+    out = copy.deepcopy(cfg)
+    for parent, k in _leaves(out, path.split(".")):
+        parent[k] = float(parent[k]) * value if scale else value
+    return out
+
+
+def parameter_value(cfg: dict, path: str) -> list[float]:
+    """The calibrated value(s) at ``path``."""
+    return [float(p[k]) for p, k in _leaves(cfg, path.split("."))]
+
+
+def variants(cfg: dict) -> list[tuple[str, str, float, dict]]:
+    """(parameter, level, value, config) of the baseline and of every parameter at its low and high end."""
+    out = [("baseline", "calibrated", float("nan"), cfg)]
+    for p in cfg["rom"]["sensitivity"]["parameters"]:
+        for level in ("low", "high"):
+            out.append(
+                (p["name"], level, float(p[level]), with_parameter(cfg, p["path"], p[level], p.get("scale", False)))
+            )
+    return out
+
+
+def unit_rom_config(rom: dict) -> dict:
+    """The ``rom`` block restricted to the sensitivity's functional units (no lumbar model, no ALL run)."""
+    return {
+        **rom,
+        "lumbar": {**rom["lumbar"], "enabled": False},
+        "units": rom["sensitivity"]["units"],
+        "all_effect": False,
+    }
+
+
+def solve_variant(
+    template: HexTemplate, points: np.ndarray, cfg: dict, workdir: str | Path, model_id: str
+) -> pd.DataFrame:
+    """ROM table of the sensitivity units for one configuration; reused from ``workdir/rom.csv`` when the
+    configuration it was solved with (``workdir/config.json``) is the same."""
+    workdir = Path(workdir)
+    rom = unit_rom_config(cfg["rom"])
+    key = json.dumps({"fe": cfg["fe"], "rom": {k: v for k, v in rom.items() if k != "sensitivity"}}, sort_keys=True)
+    table_path, key_path = workdir / "rom.csv", workdir / "config.json"
+    if table_path.exists() and key_path.exists() and key_path.read_text() == key:
+        return pd.read_csv(table_path)
+    table = solve_model(template, points, rom, workdir, model_id, materials_from_config(cfg["fe"]))
+    workdir.mkdir(parents=True, exist_ok=True)
+    table.to_csv(table_path, index=False)
+    key_path.write_text(key)
+    return table
+
+
+def sensitivity(
+    template: HexTemplate, points: np.ndarray, cfg: dict, workdir: str | Path, model_id: str
+) -> pd.DataFrame:
+    """One row per variant (baseline, each parameter low/high) and compared ROM: our value, its change from
+    the baseline (deg), in_range (calibration criterion), the load fraction reached; plus the lumbar
+    orderings (flexion - extension, lateral - axial, deg) of the L units as rows with motion
+    ``flexion_minus_extension`` / ``lateral_minus_axial``."""
+    rows = []
+    base_table = None
+    for name, level, value, vcfg in variants(cfg):
+        sub = Path(workdir) / (name if level == "calibrated" else f"{name}_{level}")
+        if base_table is not None and vcfg == cfg:  # a parameter calibrated at one end of its range
+            table = base_table
+        else:
+            table = solve_variant(template, points, vcfg, sub, model_id)
+        if level == "calibrated":
+            base_table = table
+        val = validate_from_config(table, unit_rom_config(vcfg["rom"]))
+        frac = float(table["load_fraction"].min())
+        for r in val.itertuples():
+            rows.append(
+                {
+                    "parameter": name,
+                    "level": level,
+                    "value": value,
+                    "segment": r.segment,
+                    "motion": r.motion,
+                    "side": r.side,
+                    "rom_deg": r.model_deg,
+                    "in_range": r.in_range,
+                    "min_load_fraction": frac,
+                }
+            )
+        for o in orderings(table, mode="unit").itertuples():
+            for motion, v in (
+                ("flexion_minus_extension", o.flexion_minus_extension_deg),
+                ("lateral_minus_axial", o.lateral_minus_axial_deg),
+            ):
+                rows.append(
+                    {
+                        "parameter": name,
+                        "level": level,
+                        "value": value,
+                        "segment": o.segment,
+                        "motion": motion,
+                        "side": "one",
+                        "rom_deg": v,
+                        "in_range": bool(v > 0),
+                        "min_load_fraction": frac,
+                    }
+                )
+        log.info("sensitivity %s %s (%s): %d rows, min load fraction %.2f", name, level, value, len(val), frac)
+    out = pd.DataFrame(rows)
+    base = out[out["parameter"] == "baseline"].set_index(["segment", "motion", "side"])["rom_deg"]
+    out["change_deg"] = (
+        out["rom_deg"] - base.reindex(pd.MultiIndex.from_frame(out[["segment", "motion", "side"]])).to_numpy()
+    ).round(3)
+    return out

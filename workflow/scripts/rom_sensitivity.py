@@ -1,0 +1,26 @@
+# Adapter: each calibrated parameter at the ends of its published range -> change of every compared ROM.
+import pandas as pd
+
+from spinecohort.fe.abaqus import read_inp_nodes
+from spinecohort.fe.calculix import find_ccx
+from spinecohort.figures import rom_sensitivity_figure
+from spinecohort.logs import to_file
+from spinecohort.mesh.template import HexTemplate
+from spinecohort.rom.sensitivity import sensitivity
+
+with to_file(snakemake.log[0]) as log:
+    find_ccx()
+    template = HexTemplate.load(snakemake.input.template)
+    _, points = read_inp_nodes(snakemake.input.deck)
+    rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
+    cfg = {"fe": snakemake.params.fe, "rom": rom}
+    table = sensitivity(template, points, cfg, snakemake.output.runs, snakemake.params.model)
+    table.to_csv(snakemake.output.table, index=False)
+    rom_sensitivity_figure(table, snakemake.output.figure)
+    with pd.option_context("display.width", 200):
+        log.info(
+            "change of ROM (deg):\n%s",
+            table.pivot_table(index=["parameter", "level"], columns=["segment", "motion"], values="change_deg").round(
+                2
+            ),
+        )
