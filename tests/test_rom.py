@@ -337,7 +337,12 @@ def test_facet_contact_from_the_config():
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["rom"]["facets"]
     fc = FacetContact.from_config(cfg)
     assert fc.clearance_mm == cfg["clearance_mm"] and fc.stiffness_n_per_mm == cfg["stiffness_n_per_mm"]
-    assert fc.angles_deg("T5") == (60.0, -20.0) and fc.angles_deg("L4") == (90.0, 45.0)
+    # calibrated per level inside Masharawi et al. 2004's ranges: thoracic 25-30 deg from the frontal plane
+    # (facing laterally), T12-L2 56-64 and L3-L5 34-50 deg to the frontal plane (facing medially); T11 halfway
+    # between the T10 and T12 anchors (linear interpolation)
+    assert fc.angles_deg("T5") == (60.0, -27.5) and fc.angles_deg("L1") == (90.0, 64.0)
+    assert fc.angles_deg("L4") == (90.0, 50.0) and fc.angles_deg("T11") == (75.0, pytest.approx(18.25))
+    assert -30.0 <= fc.angles_deg("T5")[1] <= -25.0 and 34.0 <= fc.angles_deg("L4")[1] <= 50.0
     assert FacetContact.from_config({**cfg, "enabled": False}) is None
     with pytest.raises(ValueError, match="cranial to caudal"):
         FacetContact(transverse_deg=(("L5", 90.0), ("T1", 60.0))).angles_deg("T5")
