@@ -37,8 +37,11 @@ PLANES = {
 #: 500 N reference force), but smaller increments.  A whole spine turns ~17 times as much as one unit: with
 #: the ROM's first increment (5 % of 7.5 N.m = 375 N.mm on T1) ccx 2.20 aborted in the 5th iteration on the
 #: test model ("*ERROR in umat_elastic_fiber: fiber extension is too large", fatal, not a cutback); steps of
-#: 100 N.mm (`MODEL_INCREMENT_NMM`) converged in 7-10 iterations each (37.5 N.mm did not: near zero load the
-#: tension-only ligaments and fibres keep switching)
+#: 100 N.mm converged in 7-10 iterations each with the session-3 materials (37.5 N.mm did not: near zero load
+#: the tension-only ligaments and fibres keep switching).  With the calibrated materials (softer posterior
+#: ligaments, K 180 MPa nucleus) one 100 N.mm increment aborts in the fibre law again, and four of 25 N.mm
+#: converge (tests/test_fe_connections.py): the first increment is 25 N.mm (`MODEL_INCREMENT_NMM`), later
+#: ones grow as ccx's increment control allows, up to 5 % of the load
 MODEL_STEP_DEFAULTS = dict(
     nlgeom=True,
     min_increment=1e-5,
@@ -46,7 +49,7 @@ MODEL_STEP_DEFAULTS = dict(
     max_increments=1000,
     average_force_n=500.0,
 )
-MODEL_INCREMENT_NMM = 100.0
+MODEL_INCREMENT_NMM = 25.0
 
 
 def load_vector_nmm(model: RomModel, case: str, moment_nmm: float) -> np.ndarray:
@@ -176,7 +179,7 @@ def model_load_text(
     body of vertebra `top` rigid (its hex nodes; its posterior skin hangs on it by the connectors: a rigid
     body holding shell nodes slowed ccx's Newton iterations to a stall) and loaded with `moment_nmm` (N.mm)
     about its anatomical axis of `case`, one NLGEOM step with the ROM's convergence controls (`step_kw`:
-    those of `rom_deck_text`; default `MODEL_STEP_DEFAULTS`, first increment 100 N.mm), ROT NODE rotations (rad) printed to the .dat file and,
+    those of `rom_deck_text`; default `MODEL_STEP_DEFAULTS`, first increment 25 N.mm), ROT NODE rotations (rad) printed to the .dat file and,
     if node_file, displacements to the .frd file.  Solve with ``ccx -i <job>``."""
     from spinecohort.fe.export import fixed_set
     from spinecohort.rom.submodel import vertebra_frame
