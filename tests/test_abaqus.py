@@ -25,6 +25,7 @@ from spinecohort.fe.abaqus import (
     write_vtu,
 )
 from spinecohort.fe.calculix import CalculixError, check_input, find_ccx, parse_dat, run_ccx
+from spinecohort.testing import hex_grid
 
 HAS_CCX = shutil.which("ccx") is not None
 needs_ccx = pytest.mark.skipif(not HAS_CCX, reason="CalculiX 'ccx' not installed (Debian package calculix-ccx)")
@@ -35,25 +36,7 @@ SIDE_MM, LENGTH_MM = 10.0, 60.0
 def hex_column(nx=3, ny=3, nz=6, side=SIDE_MM, length=LENGTH_MM):
     """Nodes (N, 3) mm and C3D8 connectivity (E, 8), 0-based, of a structured square column along z."""
     xs, ys, zs = np.linspace(0, side, nx + 1), np.linspace(0, side, ny + 1), np.linspace(0, length, nz + 1)
-    z, y, x = np.meshgrid(zs, ys, xs, indexing="ij")
-    nodes = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-
-    def nid(i, j, k):
-        return (k * (ny + 1) + j) * (nx + 1) + i
-
-    k, j, i = (a.ravel() for a in np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij"))
-    hexes = np.column_stack(
-        [
-            nid(i, j, k),
-            nid(i + 1, j, k),
-            nid(i + 1, j + 1, k),
-            nid(i, j + 1, k),
-            nid(i, j, k + 1),
-            nid(i + 1, j, k + 1),
-            nid(i + 1, j + 1, k + 1),
-            nid(i, j + 1, k + 1),
-        ]
-    )
+    nodes, hexes = hex_grid(xs, ys, zs, x_fastest=True)
     return nodes, hexes
 
 

@@ -30,6 +30,7 @@ from spinecohort.rom.submodel import (
     facet_gaps,
 )
 from spinecohort.ssm.procrustes import kabsch
+from spinecohort.testing import hex_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_CCX = shutil.which("ccx") is not None
@@ -46,25 +47,8 @@ def column(nx, nz_per, lengths, side):
         zs += list(zs[-1] + np.linspace(0, L, n + 1)[1:])
         part_of_layer += [p] * n
     xs = np.linspace(0, side, nx + 1)
-    z, y, x = np.meshgrid(np.array(zs), xs, xs, indexing="ij")
-    nodes = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-
-    def nid(i, j, k):
-        return (k * (nx + 1) + j) * (nx + 1) + i
-
-    k, j, i = (a.ravel() for a in np.meshgrid(np.arange(len(zs) - 1), np.arange(nx), np.arange(nx), indexing="ij"))
-    hexes = np.column_stack(
-        [
-            nid(i, j, k),
-            nid(i + 1, j, k),
-            nid(i + 1, j + 1, k),
-            nid(i, j + 1, k),
-            nid(i, j, k + 1),
-            nid(i + 1, j, k + 1),
-            nid(i + 1, j + 1, k + 1),
-            nid(i, j + 1, k + 1),
-        ]
-    )
+    nodes, hexes = hex_grid(xs, xs, zs, x_fastest=True)
+    k = np.repeat(np.arange(len(zs) - 1), nx * nx)  # element layer: elements are numbered layer by layer
     return nodes, hexes, np.array(part_of_layer)[k], np.array(zs)
 
 
