@@ -396,7 +396,9 @@ def _technical_info(counts: dict) -> str:
         f"{counts['n_tri_nodes']} surface vertices each, mm) in a sharded Zarr v3 store (core codecs only) "
         f"split into {counts['n_parts']} tar parts; {counts['n_patients']} patient "
         f"surfaces; {counts['n_personalized']} personalized models. Packaged as a "
-        f"BagIt bag (RFC 8493); see data/README.md."
+        f"BagIt bag (RFC 8493); see data/README.md. Decks: one connected FE body each (connector springs join "
+        f"arches, sacrum, pelvis and femoral heads; annulus C3D8R); fix node set PELVIS and load the top. Version "
+        f"0.x renumbers elements: hexahedra non-annulus first, then annulus (node ids unchanged)."
     )
 
 
