@@ -26,6 +26,7 @@ import pandas as pd
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
 from spinecohort.measure.spinopelvic import measure
+from spinecohort.measure.tables import QUALITY_SUMMARY
 from spinecohort.mesh.contact import distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.quality import (
@@ -167,17 +168,7 @@ def check_and_repair(
     rows["invalid_after"] = (sj <= 0).sum(axis=1)
     for tissue, v in _min_by_part(sj, template.part_of_hex()).items():
         rows[f"min_sj_{tissue}"] = v
-    cols = [
-        "model_id",
-        "min_sj_before",
-        "min_sj_after",
-        "invalid_before",
-        "invalid_after",
-        "nodes_moved",
-        "max_displacement_mm",
-        "repaired",
-        "repair_error",
-    ]
+    cols = ["model_id", *QUALITY_SUMMARY, "repair_error"]  # the sheet's summary columns, spelled once
     return rows[cols + [c for c in rows.columns if c not in cols]]
 
 
