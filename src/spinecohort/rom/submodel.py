@@ -100,6 +100,8 @@ class FacetContact:
     stiffness_n_per_mm: float = 200.0
     transverse_deg: tuple[tuple[str, float], ...] = (("T1", 60.0), ("T10", 60.0), ("T12", 90.0), ("L5", 90.0))
     frontal_deg: tuple[tuple[str, float], ...] = (("T1", -20.0), ("T10", -20.0), ("T12", 45.0), ("L5", 45.0))
+    tip_clearance_mm: float | None = None
+    tip_stiffness_n_per_mm: float = 200.0
 
     @staticmethod
     def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
@@ -130,6 +132,8 @@ class FacetContact:
             float(cfg["stiffness_n_per_mm"]),
             tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
             tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()),
+            None if cfg.get("tip_clearance_mm") is None else float(cfg["tip_clearance_mm"]),
+            float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
         )
 
 
@@ -148,6 +152,24 @@ def facet_gaps(
         n = facets.normal(up, frame, side)
         name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
         out.append(((facets.clearance_mm, tuple(map(float, n)), facets.stiffness_n_per_mm), name))
+    return out
+
+
+def tip_gaps(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
+) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
+    """((clearance, direction, stiffness), elset name) of each joint's extension stop: the IAP tip of the upper
+    vertebra coming down onto the lamina of the lower one.  Direction: the lower vertebra's cranial axis (node 1
+    on the lower vertebra, node 2 on the IAP tip), so the gap closes when the tip moves caudally."""
+    owner = arch_owner(template)
+    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs.ravel()}}
+    out = []
+    for iap, sap in pairs:
+        up, lo = owner[int(iap)], owner[int(sap)]
+        frame, centre = frames[lo]
+        side = "R" if (points[iap] - frames[up][1]) @ frames[up][0][:, 0] > 0 else "L"
+        gap = (float(facets.tip_clearance_mm), tuple(map(float, frame[:, 2])), facets.tip_stiffness_n_per_mm)
+        out.append((gap, f"FACET_TIP_{up}{lo}_{side}"))
     return out
 
 
@@ -246,6 +268,18 @@ def extract_rom_model(
             extra_tied[owner[int(sap)]].append(int(lw))
         facet_conn = np.stack([lower_side, upper_side], 1)  # GAPUNI node 1 = SAP side, node 2 = IAP side
         source = np.concatenate([source, np.full(2 * len(facet_pairs), -1)])
+        if facets.tip_clearance_mm is not None:
+            # extension stop: two coincident nodes at the IAP tip, one on each vertebra (why coincident: above)
+            tip = points[facet_pairs[:, 0]]
+            first_new = len(pts)
+            pts = np.concatenate([pts, tip, tip])
+            upper_tip = first_new + np.arange(len(facet_pairs))
+            lower_tip = upper_tip + len(facet_pairs)
+            for (iap, sap), u, lw in zip(facet_pairs, upper_tip, lower_tip):
+                extra_tied[owner[int(iap)]].append(int(u))
+                extra_tied[owner[int(sap)]].append(int(lw))
+            facet_conn = np.concatenate([facet_conn, np.stack([lower_tip, upper_tip], 1)])
+            source = np.concatenate([source, np.full(2 * len(facet_pairs), -1)])
 
     # annulus hexes last, in their own block when their element type differs
     annulus = np.zeros(len(template.hexes), bool)
@@ -291,7 +325,11 @@ def extract_rom_model(
     if len(facet_pairs):
         first = len(hexes) + len(lig_conn)
         blocks["FACETS"] = ("GAPUNI", facet_conn)
-        for i, (gap, name) in enumerate(facet_gaps(template, points, facet_pairs, facets)):
+        gaps = facet_gaps(template, points, facet_pairs, facets)
+        if facets.tip_clearance_mm is not None:
+            gaps += tip_gaps(template, points, facet_pairs, facets)
+            lig_counts["FACET_TIP"] = len(facet_pairs)
+        for i, (gap, name) in enumerate(gaps):
             elsets[name] = np.array([first + i])
             sections.append(Section(elset=name, gap=gap))
         lig_counts["FACET"] = len(facet_pairs)
