@@ -11,7 +11,7 @@ import pytest
 
 from spinecohort.fe.connections import CONNECTOR_TABLE, posterior_wall, skin_pieces, spread_nodes, truss_pairs
 from spinecohort.fe.connectivity import ConnectivityError, check_connected, unreachable_report
-from spinecohort.fe.export import fe_model, write_deck
+from spinecohort.fe.export import DEFAULT_MATERIALS, fe_model, write_deck
 
 
 def test_truss_pairs_join_every_attachment_node_to_every_target_and_to_each_other():
@@ -32,9 +32,11 @@ def test_spread_nodes_are_three_non_collinear_nodes_of_the_piece(template):
 def test_the_exported_deck_is_one_body_and_without_connectors_it_is_not(template):
     fe = fe_model(template)
     assert unreachable_report(fe, fe.node_sets["PELVIS"]) == {}
-    # every bony skin is attached: 17 arches, sacrum, pelvis (its 12 pieces), two femoral heads
+    # every bony skin is attached: 17 arches, sacrum, pelvis (its 12 pieces), two femoral heads; and the
+    # facet-joint nodes of each of the 17 vertebrae (T1-T2 ... L4-L5 joints; none at L5-S1)
     conn = {k for k in fe.element_sets if k.startswith("CONN_")}
-    assert conn == {f"CONN_ARCH_{v}" for v in ("T1 T2 T3 T4 T5 T6 T7 T8 T9 T10 T11 T12 L1 L2 L3 L4 L5".split())} | {
+    levels = "T1 T2 T3 T4 T5 T6 T7 T8 T9 T10 T11 T12 L1 L2 L3 L4 L5".split()
+    assert conn == {f"CONN_ARCH_{v}" for v in levels} | {f"CONN_FACET_{v}" for v in levels} | {
         "CONN_SACRUM",
         "CONN_PELVIS",
         "CONN_FH_L",
@@ -72,6 +74,28 @@ def test_a_part_held_only_by_tension_only_springs_is_reported_by_name(template, 
     check_connected(fe, fe.node_sets["PELVIS"], "x", couplings=[np.concatenate([arch, posterior_wall(template, "L3")])])
 
 
+def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(template):
+    from spinecohort.fe.facets import FacetContact
+    from spinecohort.rom.submodel import extract_rom_model
+
+    mats = replace(DEFAULT_MATERIALS, facets=replace(FacetContact(), tip_clearance_mm=1.0))
+    fe = fe_model(template, materials=mats)
+    n = template.n_nodes
+    etype, gaps = fe.element_blocks["FACETS"]
+    # 16 segments x 2 sides, a joint gap and an extension stop each; the new nodes come after the template's
+    assert etype == "GAPUNI" and len(gaps) == 64 and len(fe.nodes) == n + 128 and gaps.min() >= n
+    np.testing.assert_allclose(fe.nodes[gaps[:, 0]], fe.nodes[gaps[:, 1]], atol=1e-12)  # coincident pairs
+    np.testing.assert_array_equal(fe.nodes[:n], template.nodes)
+    # the gaps the exported deck and the ROM sub-model of L2-L4 define for the same joints are the same
+    sec = {s.elset: s.gap for s in fe.sections if s.gap is not None}
+    rom = extract_rom_model(template, template.nodes, "L2", "L4", materials=mats, facets=mats.facets)
+    rom_sec = {s.elset: s.gap for s in rom.fe.sections if s.gap is not None}
+    assert len(rom_sec) == 8 and all(sec[k] == v for k, v in rom_sec.items())
+    # and the deck without facets has none
+    bare = fe_model(template, materials=replace(DEFAULT_MATERIALS, facets=None))
+    assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n
+
+
 def test_exported_annulus_is_c3d8r_and_renumbered_hexes_keep_their_connectivity(template):
     fe = fe_model(template)
     (t_hex, hexes), (t_af, af) = fe.element_blocks["HEXES"], fe.element_blocks["HEXES_AF"]
@@ -103,7 +127,7 @@ def test_the_exported_deck_solves_under_a_pure_moment(template, tmp_path):
     # (displacement increments ~1e15 mm).
     from spinecohort.fe.abaqus import format_id_list
     from spinecohort.fe.calculix import run_ccx
-    from spinecohort.rom.submodel import vertebra_frame
+    from spinecohort.fe.facets import vertebra_frame
 
     fe = fe_model(template)
     deck = write_deck(fe, tmp_path / "model.inp")
@@ -141,8 +165,8 @@ def test_the_exported_deck_solves_under_a_pure_moment(template, tmp_path):
 def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(template):
     import re
 
+    from spinecohort.fe.facets import vertebra_frame
     from spinecohort.rom.deck import model_load_text
-    from spinecohort.rom.submodel import vertebra_frame
 
     fe = fe_model(template)
     n = len(fe.nodes)

@@ -14,20 +14,20 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.fe.abaqus import FEModel, LinearElastic, Section, read_inp_nodes, write_inp
+from spinecohort.fe.abaqus import FEModel, LinearElastic, Section, write_inp
 from spinecohort.fe.calculix import check_input
-from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config
+from spinecohort.fe.connections import arch_nodes
+from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config, read_deck_points
+from spinecohort.fe.facets import FacetContact, facet_gaps, vertebra_frame
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import accepted_interval, orderings, validate, validation_markdown
 from spinecohort.rom.deck import rom_deck_text
 from spinecohort.rom.run import Settings, run_case
 from spinecohort.rom.submodel import (
-    FacetContact,
     RomError,
     RomModel,
     column_levels,
     extract_rom_model,
-    facet_gaps,
 )
 from spinecohort.ssm.procrustes import kabsch
 from spinecohort.testing import hex_grid
@@ -310,16 +310,17 @@ def test_facet_gap_directions_follow_the_joint_angles(template):
             assert np.all(np.abs(n[:, 0]) < 0.05) and np.all(n[:, 1] < -0.85), n
         else:
             assert np.all(np.abs(n[:, 0]) < 0.05) and np.all(n[:, 2] > 0.85), n
-    # the default (White & Panjabi) anchors interpolate: T11 halfway between T10 and T12
-    assert FacetContact().angles_deg("T11") == pytest.approx((75.0, 12.5))
-    assert FacetContact().angles_deg("L3") == pytest.approx((90.0, 45.0))
+    # the defaults (= config/config.yaml) interpolate: T11 halfway between the T10 and T12 anchors
+    assert FacetContact().angles_deg("T11") == pytest.approx((75.0, 18.25))
+    assert FacetContact().angles_deg("L3") == pytest.approx((90.0, 50.0))
 
 
 def test_facet_contact_from_the_config():
     import yaml
 
-    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["rom"]["facets"]
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["fe"]["facets"]
     fc = FacetContact.from_config(cfg)
+    assert fc == FacetContact()  # the module defaults are the config's (fe_model(template, points) == config)
     assert fc.clearance_mm == cfg["clearance_mm"] and fc.stiffness_n_per_mm == cfg["stiffness_n_per_mm"]
     # calibrated per level inside Masharawi et al. 2004's ranges: thoracic 25-30 deg from the frontal plane
     # (facing laterally), T12-L2 56-64 and L3-L5 34-50 deg to the frontal plane (facing medially); T11 halfway
@@ -334,13 +335,25 @@ def test_facet_contact_from_the_config():
 
 def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
     m = extract_rom_model(template, template.nodes, "L2", "L4", facets=FacetContact())
-    assert m.ligament_groups["FACET"] == 4  # L2-L3 and L3-L4, left and right
+    # L2-L3 and L3-L4, left and right: a joint gap and an extension stop each (the default has the stop)
+    assert m.ligament_groups["FACET"] == 4 and m.ligament_groups["FACET_TIP"] == 4
     etype, conn = m.fe.element_blocks["FACETS"]
-    assert etype == "GAPUNI"
-    # the two nodes of a gap coincide (a rigid turn of the whole joint must not open or close it), at the
-    # midpoint of the two process tips, and are new nodes (no template source)
+    assert etype == "GAPUNI" and len(conn) == 8
+    # the two nodes of a gap coincide (a rigid turn of the whole joint must not open or close it) and are new
+    # nodes (no template source): the joint gaps at the midpoint of the two process tips, the stops at the
+    # inferior articular process tip, closing along the lower vertebra's cranial axis
     np.testing.assert_array_equal(m.fe.nodes[conn[:, 0]], m.fe.nodes[conn[:, 1]])
     assert (m.source_nodes[conn] == -1).all()
+    cl = template.ligaments[template.elsets["LIG_CL"]]
+    joints = cl[np.isin(cl, np.concatenate([arch_nodes(template, v) for v in ("L2", "L3", "L4")])).all(axis=1)]
+    np.testing.assert_allclose(m.fe.nodes[conn[:4, 0]], 0.5 * template.nodes[joints].sum(1), atol=1e-12)
+    np.testing.assert_allclose(m.fe.nodes[conn[4:, 0]], template.nodes[joints[:, 0]], atol=1e-12)
+    gaps = {sec.elset: sec.gap for sec in m.fe.sections if sec.gap is not None}
+    for name, (clearance, direction, _) in gaps.items():
+        if name.startswith("FACET_TIP_"):
+            lower = name[len("FACET_TIP_") :].split("_")[0][2:]  # e.g. FACET_TIP_L2L3_R -> L3
+            assert clearance == 1.05
+            np.testing.assert_allclose(direction, vertebra_frame(template, template.nodes, lower)[0][:, 2])
     # each is tied to its own vertebra: L2 (top) by the rigid body, L4 (bottom) fixed, L3 by its arch truss
     arch_l3 = m.fe.element_blocks["ARCHES"][1]
     for lower, upper in conn:
@@ -348,7 +361,7 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
         in_l3 = {lower, upper} & set(arch_l3.ravel().tolist())
         assert (in_top and lower in in_l3) or (in_fixed and upper in in_l3)
     text = rom_deck_text(m, "axial_left", 7500.0)
-    assert text.count("*GAP, ELSET=FACET_") == 4 and "*ELEMENT, TYPE=GAPUNI, ELSET=FACETS" in text
+    assert text.count("*GAP, ELSET=FACET_") == 8 and "*ELEMENT, TYPE=GAPUNI, ELSET=FACETS" in text
 
 
 # --- CalculiX ---------------------------------------------------------------------------------------
@@ -594,8 +607,7 @@ def test_a_non_mean_store_model_deck_runs(rom_run, tmp_path):
     deck = rom_run / "results" / "models" / "model_00026.inp"
     assert "No analysis was selected" in check_input(deck, tmp_path / "check").log
     template = HexTemplate.load(rom_run / "results" / "template" / "template.npz")
-    ids, pts = read_inp_nodes(deck)
-    m = extract_rom_model(template, pts, "L3", "L4")
+    m = extract_rom_model(template, read_deck_points(deck, template), "L3", "L4")
     r = run_case(m, "flexion", tmp_path / "run", moment_nmm=1000.0)
     assert 0.01 < r.curve[-1, 1] < 5.0  # flexion rotation of L3 (deg)
     assert re.search(r"Total CalculiX Time", (tmp_path / "run" / "rom_flexion.log").read_text())
@@ -621,7 +633,7 @@ def test_rom_settings_from_the_config():
     s = Settings.from_config(cfg)
     # the default config: pelvis..T10 lumbar model and three thoracic units, six load cases at 7.5 N.m
     assert s.lumbar == ("T10", "S1") and s.units == (("T2", "T3"), ("T6", "T7"), ("T10", "T11"))
-    assert s.moment_nmm == 7500.0 and len(s.load_cases) == 6 and s.facets == FacetContact.from_config(cfg["facets"])
+    assert s.moment_nmm == 7500.0 and len(s.load_cases) == 6
     assert s.deck_kw()["average_force_n"] == cfg["reference_force_n"]
     assert Settings.from_config({**cfg, "lumbar": {**cfg["lumbar"], "enabled": False}}).lumbar is None
 

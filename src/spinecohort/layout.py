@@ -224,6 +224,13 @@ class Layout:
     def rom_modes(self) -> str:
         return self.path("rom", "modes.csv")
 
+    def rom_mode_table(self, model_id: str) -> str:
+        """One model's ROM table of the mode study (its functional units only, rule rom_mode_model)."""
+        return self.path("rom", "modes", f"{model_id}.csv")
+
+    def rom_mode_dir(self, model_id: str) -> str:
+        return self.path("rom", "modes", model_id)
+
     @property
     def rom_modes_png(self) -> str:
         return self.path("rom", "modes.png")

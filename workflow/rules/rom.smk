@@ -1,7 +1,7 @@
 # Stage 9: FE validation. Range of motion of one model under pure moments in CalculiX (lumbar model
 # pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/rom.md); the sensitivity of
 # the compared ROM to the calibrated parameters; the ROM of the mean and of each shape mode at its extremes.
-from spinecohort.rom.modes import mode_models
+from spinecohort.rom.modes import mode_models, mode_rom_config
 
 ROM_REPORT_KEYS = (
     "model",
@@ -11,6 +11,7 @@ ROM_REPORT_KEYS = (
     "references",
     "sensitivity",
     "mode_levels",
+    "mode_units",
 )
 
 
@@ -84,16 +85,40 @@ rule rom_sensitivity:
         "../scripts/rom_sensitivity.py"
 
 
-# The cohort's mechanics: the mean and each shape mode at rom.mode_levels (not in rule all: ~7 min per model)
+# The cohort's mechanics: the mean and each shape mode at rom.mode_levels, functional units rom.mode_units
+# (not in rule all: ~2 min per model on 2 cores)
 MODE_MODELS = mode_models(
     config["grid"]["n_modes"], config["grid"]["levels"], config["rom"]["mode_levels"]
 )
 
 
+rule rom_mode_model:
+    input:
+        deck=L.model_file("{model_id}", "inp"),
+        template=L.template,
+    output:
+        table=L.rom_mode_table("{model_id}"),
+        runs=directory(L.rom_mode_dir("{model_id}")),
+    log:
+        f"{LOGS}/rom_mode_model/{{model_id}}.log",
+    benchmark:
+        L.benchmark("rom_mode_model", "{model_id}")
+    wildcard_constraints:
+        model_id=r"model_\d{5}",
+    conda:
+        "../../environment.yml"
+    threads: config["rom"]["threads"]
+    params:
+        rom=mode_rom_config(config["rom"], ROM_REPORT_KEYS),
+        fe=config["fe"],
+    script:
+        "../scripts/rom_model.py"
+
+
 rule rom_modes:
     input:
-        tables=[L.rom_table(m) for m in MODE_MODELS["model"]],
-        benchmarks=[L.benchmark("rom_model", m) for m in MODE_MODELS["model"]],
+        tables=[L.rom_mode_table(m) for m in MODE_MODELS["model"]],
+        benchmarks=[L.benchmark("rom_mode_model", m) for m in MODE_MODELS["model"]],
     output:
         table=L.rom_modes,
         figure=L.rom_modes_png,

@@ -1,9 +1,7 @@
 # Adapter: the range of motion of one model (its exported .inp) for every configured extraction and load case.
-import numpy as np
 
-from spinecohort.fe.abaqus import read_inp_nodes
 from spinecohort.fe.calculix import find_ccx
-from spinecohort.fe.export import materials_from_config
+from spinecohort.fe.export import materials_from_config, read_deck_points
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.run import solve_model
@@ -11,12 +9,7 @@ from spinecohort.rom.run import solve_model
 with to_file(snakemake.log[0]) as log:
     find_ccx()  # a clear error naming the Debian package before any work
     template = HexTemplate.load(snakemake.input.template)
-    ids, points = read_inp_nodes(snakemake.input.deck)
-    if len(points) != template.n_nodes or not np.array_equal(ids, np.arange(1, template.n_nodes + 1)):
-        raise ValueError(
-            f"{snakemake.input.deck}: {len(points)} nodes with ids {ids[:3]}..., but the template "
-            f"{snakemake.input.template} has {template.n_nodes} nodes numbered 1..N"
-        )
+    points = read_deck_points(snakemake.input.deck, template)  # the extraction rebuilds the facet nodes
     # at most as many parallel ccx runs as the scheduler gave this job (--set-threads, --cores)
     rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
     table = solve_model(

@@ -37,6 +37,7 @@ from spinecohort.fe.abaqus import (
     write_inp,
     write_vtu,
 )
+from spinecohort.fe.facets import FacetContact
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate
 
 
@@ -60,12 +61,13 @@ class FEMaterials:
     shell_thickness_mm: float = 1.0  # posterior elements, sacrum, pelvis (S3, cortical material)
     nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0111)  # C10, C01 MPa, D1 1/MPa (K 180 MPa)
     annulus_c10_mpa: float = 0.225
-    annulus_d1_per_mpa: float = 0.46  # from nu = 0.45 of the ground substance at mu = 0.45 MPa
-    fibre_k1_mpa: float = 1.8
+    annulus_d1_per_mpa: float = 0.688  # calibrated (config/config.yaml)
+    fibre_k1_mpa: float = 1.51
     fibre_k2: float = 11.0
-    fibre_angle_deg: float = 30.0  # to the transverse plane, +- (two families)
+    fibre_angle_deg: float = 32.5  # to the transverse plane, +- (two families)
     ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
     include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
+    facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
 
     def annulus_constants(self) -> tuple[float, ...]:
         """ELASTIC_FIBER constants: C10, D1, then (ax, ay, k1, k2) per family in the cylindrical system
@@ -130,6 +132,7 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         fibre_angle_deg=float(fib["angle_deg"]),
         ligaments=ligs,
         include_all=bool(fe["include_all"]),
+        facets=FacetContact.from_config(fe["facets"]),
     )
 
 
@@ -221,13 +224,16 @@ def fe_model(
     Element blocks, in this order: ``HEXES`` (bone, cartilage endplates, nucleus: `hex_type`), ``HEXES_AF``
     (the annulus: `annulus_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's fibre law aborts with
     C3D8/C3D8I), ``SURFACES`` (S3 skins), ``LIGAMENTS`` (tension-only SPRINGA), ``CONNECTORS`` (linear
-    SPRINGA, element sets ``CONN_*``).  Hex elements are therefore numbered non-annulus first, then annulus,
+    SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the facet nodes on their vertebra), ``FACETS``
+    (GAPUNI facet-joint gaps, `spinecohort.fe.facets`; element sets ``FACET_*``).  Nodes: the template's
+    (ids 1..N, template order), then the facet nodes (materials.facets None: none).  Hex elements are therefore numbered non-annulus first, then annulus,
     each in template order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model).
     annulus_hex_type None: the annulus in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
     (a deck of loose parts, for pictures only).
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
     """
-    from spinecohort.fe.connections import CONNECTOR_TABLE, model_connectors
+    from spinecohort.fe.connections import CONNECTOR_TABLE, model_connectors, posterior_wall, truss_pairs
+    from spinecohort.fe.facets import facet_nodes, facet_pairs
 
     mats = DEFAULT_MATERIALS if materials is None else materials
     include_all = mats.include_all if include_all is None else include_all
@@ -263,12 +269,25 @@ def fe_model(
             idx = np.sort(pos_of_hex[idx])
         elsets[name] = offset[kind] + np.asarray(idx)
     conn_sets = model_connectors(template, template.nodes) if connectors else {}
+    fn = None
+    if connectors and mats.facets is not None and "LIG_CL" in template.elsets:
+        # facet joints: new nodes after the template's (ids N+1..), each hung on its vertebra's posterior wall
+        # by the arch truss (coordinate-free: the same springs in every model of the cohort)
+        fn = facet_nodes(template, pts, facet_pairs(template), mats.facets)
+        n = len(pts)
+        for v, ix in fn.tied.items():
+            conn_sets[f"CONN_FACET_{v}"] = truss_pairs(n + ix, posterior_wall(template, v))
     if conn_sets:
         first = offset["lig"] + int(lig_keep.sum())
         blocks["CONNECTORS"] = ("SPRINGA", np.concatenate(list(conn_sets.values())))
         for name, pairs in conn_sets.items():
             elsets[name] = np.arange(first, first + len(pairs))
             first += len(pairs)
+    if fn is not None:
+        first = sum(len(c) for _, c in blocks.values())
+        blocks["FACETS"] = ("GAPUNI", len(pts) + fn.gaps)
+        for i, (_, name) in enumerate(fn.sections):
+            elsets[name] = np.array([first + i])
     orientations = disc_orientations(template, pts)
     sections = []
     for name, kind in template.elset_kind.items():
@@ -284,6 +303,9 @@ def fe_model(
             rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
             sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[group], rest)))
     sections += [Section(elset=name, spring_force_elongation=CONNECTOR_TABLE) for name in conn_sets]
+    if fn is not None:
+        sections += [Section(elset=name, gap=gap) for gap, name in fn.sections]
+        pts = np.concatenate([pts, fn.points])
     node_sets = dict(template.nsets)
     if "PELVIS" in template.elsets and "PELVIS" not in node_sets:
         node_sets["PELVIS"] = np.unique(template.tris[template.elsets["PELVIS"]])
@@ -320,6 +342,21 @@ def check_deck(model: FEModel, deck: str) -> None:
     from spinecohort.fe.connectivity import check_connected
 
     check_connected(model, model.node_sets[fixed_set(model)], deck)
+
+
+def read_deck_points(deck: str | Path, template: HexTemplate) -> np.ndarray:
+    """The template-node coordinates (n_nodes, 3) mm of an exported deck: its first N nodes, ids 1..N (the
+    facet-joint nodes after them derive from these); ValueError naming the deck if it is not an export."""
+    from spinecohort.fe.abaqus import read_inp_nodes
+
+    ids, points = read_inp_nodes(deck)
+    n = template.n_nodes
+    if len(points) < n or not np.array_equal(ids[:n], np.arange(1, n + 1)):
+        raise ValueError(
+            f"{deck}: {len(points)} nodes with ids {ids[:3]}..., but the template has {n} nodes numbered 1..N "
+            f"first: not an exported spinecohort deck of this template"
+        )
+    return points[:n]
 
 
 def write_model_files(

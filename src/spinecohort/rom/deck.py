@@ -182,13 +182,13 @@ def model_load_text(
     those of `rom_deck_text`; default `MODEL_STEP_DEFAULTS`, first increment 25 N.mm), ROT NODE rotations (rad) printed to the .dat file and,
     if node_file, displacements to the .frd file.  Solve with ``ccx -i <job>``."""
     from spinecohort.fe.export import fixed_set
-    from spinecohort.rom.submodel import vertebra_frame
+    from spinecohort.fe.facets import vertebra_frame
 
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
     if top not in LEVELS:
         raise ValueError(f"top vertebra '{top}' is not one of {LEVELS}")
-    if fe.nodes.shape != template.nodes.shape:
+    if len(fe.nodes) < template.n_nodes:  # the template's nodes first, then the facet-joint nodes
         raise ValueError(f"the deck has {len(fe.nodes)} nodes, the template {template.n_nodes}: not its export")
     n2 = len(template.grid.nodes)
     inf, sup = body_layer(template, top, 0.0), body_layer(template, top, 1.0)

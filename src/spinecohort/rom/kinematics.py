@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from spinecohort.rom.submodel import RomModel, mean_frame
+from spinecohort.fe.facets import mean_frame
+from spinecohort.rom.submodel import RomModel
 from spinecohort.ssm.procrustes import kabsch
 
 

@@ -20,7 +20,6 @@ from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.deck import LOAD_CASES, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
 from spinecohort.rom.submodel import (
-    FacetContact,
     RomError,
     RomModel,
     check_elements,
@@ -33,8 +32,11 @@ log = logging.getLogger(__name__)
 #: ccx's words for a load step it could not finish (the increment cut below its minimum, too many cutbacks),
 #: and the solver wrapper's for a run stopped at rom.timeout_s (a step crawling in 1e-5 increments near a
 #: limit load): both keep the ROM at the last converged load fraction, flagged, rather than losing the model
+#: ccx 2.20's fibre law aborting ("*ERROR in umat_elastic_fiber": it reads k2 before assigning it, docs/rom.md)
+#: depends on the iterates, so it is retried with the other attempts' settings like a non-convergence
 NONCONVERGENCE = re.compile(
-    r"increment size smaller than minimum|too many cutbacks|divergence|timed out after", re.IGNORECASE
+    r"increment size smaller than minimum|too many cutbacks|divergence|timed out after|umat_elastic_fiber",
+    re.IGNORECASE,
 )
 
 # ccx warnings that are harmless in these analyses (anything else fails the run): none so far
@@ -177,7 +179,6 @@ class Settings:
     load_cases: tuple[str, ...] = tuple(LOAD_CASES)
     hex_type: str = "C3D8"
     annulus_hex_type: str = "C3D8R"
-    facets: FacetContact | None = FacetContact()
     reference_force_n: float | None = 500.0
     nlgeom: bool = True
     initial_increment: float = 0.05
@@ -197,9 +198,8 @@ class Settings:
         p = {k: v for k, v in block.items() if k in names}
         lumbar = p.pop("lumbar")
         return cls(
-            **{k: v for k, v in p.items() if k not in ("facets", "units", "load_cases")},
+            **{k: v for k, v in p.items() if k not in ("units", "load_cases")},
             load_cases=tuple(p["load_cases"]),
-            facets=FacetContact.from_config(p["facets"]),
             lumbar=(lumbar["top"], lumbar["bottom"]) if lumbar["enabled"] else None,
             units=tuple(parse_unit(u) for u in p["units"]),
         )
@@ -252,7 +252,7 @@ def solve_model(
             materials=mats,
             hex_type=cfg.hex_type,
             annulus_hex_type=cfg.annulus_hex_type,
-            facets=cfg.facets,
+            facets=mats.facets,
         )
         variants = [
             (

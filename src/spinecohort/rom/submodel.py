@@ -36,7 +36,6 @@ from spinecohort.fe.abaqus import SOLID_TYPES, FEModel, Section
 from spinecohort.fe.connections import (
     CONNECTOR_TABLE,
     arch_nodes,
-    arch_owner,
     body_layer,
     posterior_wall,
     truss_pairs,
@@ -49,6 +48,7 @@ from spinecohort.fe.export import (
     ligament_table,
     material_cards,
 )
+from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 
 COLUMN = LEVELS + ("S1",)
@@ -80,97 +80,6 @@ class RomModel:
 
     def segments(self) -> list[tuple[str, str]]:
         return list(zip(self.vertebrae[:-1], self.vertebrae[1:]))
-
-
-@dataclass(frozen=True)
-class FacetContact:
-    """Facet-joint contact as one gap element per joint (ccx GAPUNI) between the tips of the inferior
-    articular process (IAP, upper vertebra) and the superior articular process (SAP, lower vertebra).
-
-    The gap acts along the outward normal of the SAP's joint surface, from the textbook orientation of the
-    facet plane (White & Panjabi, Clinical Biomechanics of the Spine, 2nd ed. 1990): ``transverse_deg``, the
-    plane's angle to the transverse plane (thoracic ~60, lumbar ~90), and ``frontal_deg``, its angle to the
-    frontal plane, positive when the SAP surface faces medially (lumbar ~45), negative when it faces
-    laterally (thoracic ~-20).  Normal = sin(t) (cos(f) posterior + sin(f) medial) + cos(t) cranial in the
-    upper vertebra's anatomical frame.  Both angles are interpolated linearly over the column between the
-    anchor levels given (the upper vertebra of a segment).  clearance_mm: the initial joint gap;
-    stiffness_n_per_mm: the contact stiffness of a closed joint (cartilage)."""
-
-    clearance_mm: float = 0.5
-    stiffness_n_per_mm: float = 200.0
-    transverse_deg: tuple[tuple[str, float], ...] = (("T1", 60.0), ("T10", 60.0), ("T12", 90.0), ("L5", 90.0))
-    frontal_deg: tuple[tuple[str, float], ...] = (("T1", -20.0), ("T10", -20.0), ("T12", 45.0), ("L5", 45.0))
-    tip_clearance_mm: float | None = None
-    tip_stiffness_n_per_mm: float = 200.0
-
-    @staticmethod
-    def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
-        xs = [LEVELS.index(lv) for lv, _ in anchors]
-        if xs != sorted(xs):
-            raise ValueError(f"facet angle anchors must run cranial to caudal, got {anchors}")
-        return float(np.interp(LEVELS.index(level), xs, [a for _, a in anchors]))
-
-    def angles_deg(self, level: str) -> tuple[float, float]:
-        """(transverse, frontal) angle (deg) of the joints of the segment whose upper vertebra is `level`."""
-        return self._interp(self.transverse_deg, level), self._interp(self.frontal_deg, level)
-
-    def normal(self, level: str, frame: np.ndarray, side: float) -> np.ndarray:
-        """Unit normal (SAP -> IAP) of a joint on `side` (+1 right, -1 left) of vertebra `level`, whose frame
-        has the columns lateral (right), anterior, cranial."""
-        t, f = np.radians(self.angles_deg(level))
-        medial = -side * frame[:, 0]
-        n = np.sin(t) * (np.cos(f) * -frame[:, 1] + np.sin(f) * medial) + np.cos(t) * frame[:, 2]
-        return n / np.linalg.norm(n)
-
-    @classmethod
-    def from_config(cls, cfg: dict | None) -> FacetContact | None:
-        """From the config's ``rom.facets`` block (None or ``enabled: false`` -> no contact)."""
-        if not cfg or not cfg.get("enabled", True):
-            return None
-        return cls(
-            float(cfg["clearance_mm"]),
-            float(cfg["stiffness_n_per_mm"]),
-            tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
-            tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()),
-            None if cfg.get("tip_clearance_mm") is None else float(cfg["tip_clearance_mm"]),
-            float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
-        )
-
-
-def facet_gaps(
-    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
-) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
-    """((clearance, direction, stiffness), elset name) of each facet pair (IAP tip of the upper vertebra,
-    SAP tip of the lower), in the order of `pairs`; direction from the SAP towards the IAP."""
-    owner = arch_owner(template)
-    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs[:, 0]}}
-    out = []
-    for iap, sap in pairs:
-        up, lo = owner[int(iap)], owner[int(sap)]
-        frame, centre = frames[up]
-        side = 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0  # +1 right
-        n = facets.normal(up, frame, side)
-        name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
-        out.append(((facets.clearance_mm, tuple(map(float, n)), facets.stiffness_n_per_mm), name))
-    return out
-
-
-def tip_gaps(
-    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
-) -> list[tuple[tuple[float, tuple[float, float, float], float], str]]:
-    """((clearance, direction, stiffness), elset name) of each joint's extension stop: the IAP tip of the upper
-    vertebra coming down onto the lamina of the lower one.  Direction: the lower vertebra's cranial axis (node 1
-    on the lower vertebra, node 2 on the IAP tip), so the gap closes when the tip moves caudally."""
-    owner = arch_owner(template)
-    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs.ravel()}}
-    out = []
-    for iap, sap in pairs:
-        up, lo = owner[int(iap)], owner[int(sap)]
-        frame, centre = frames[lo]
-        side = "R" if (points[iap] - frames[up][1]) @ frames[up][0][:, 0] > 0 else "L"
-        gap = (float(facets.tip_clearance_mm), tuple(map(float, frame[:, 2])), facets.tip_stiffness_n_per_mm)
-        out.append((gap, f"FACET_TIP_{up}{lo}_{side}"))
-    return out
 
 
 def column_levels(top: str, bottom: str) -> list[str]:
@@ -238,12 +147,9 @@ def extract_rom_model(
         keep_lig &= np.isin(lig_group, list(ligament_groups))
     ligs = template.ligaments[keep_lig]
     groups = lig_group[keep_lig]
-    # facet joints: the capsular-ligament anchors (inferior articular process tip of the upper vertebra,
-    # superior articular process tip of the lower one) of every segment in the model
-    facet_pairs = np.zeros((0, 2), dtype=np.int64)
-    if facets is not None:
-        cl = template.ligaments[template.elsets["LIG_CL"]]
-        facet_pairs = cl[allowed[cl].all(axis=1)]
+    # facet joints: the capsular-ligament anchors (IAP tip of the upper vertebra, SAP tip of the lower one) of
+    # every segment in the model (`spinecohort.fe.facets`)
+    joints = facet_pairs(template, allowed) if facets is not None else np.zeros((0, 2), dtype=np.int64)
     # arch anchors actually used, per vertebra
     anchors = {v: np.intersect1d(arch[v], ligs.ravel()) for v in bones}
     surf = np.unique(np.concatenate([np.zeros(0, np.int64), *anchors.values()]))
@@ -251,35 +157,17 @@ def extract_rom_model(
     new_of = np.full(len(template.nodes), -1, dtype=np.int64)
     new_of[source] = np.arange(len(source))
     pts = points[source]
-    # each facet joint: two coincident nodes at the midpoint of the two process tips, one tied to each
-    # vertebra's arch.  Coincident, so that a rigid rotation of the whole joint (L3 turns ~12 deg in the
-    # lumbar model) does not open or close the gap, as it did between the two tips 12 mm apart.
-    owner = arch_owner(template)
-    extra_tied: dict[str, list[int]] = {v: [] for v in bones}
+    extra_tied: dict[str, np.ndarray] = {v: np.zeros(0, np.int64) for v in bones}
     facet_conn = np.zeros((0, 2), dtype=np.int64)
-    if len(facet_pairs):
-        mid = 0.5 * (points[facet_pairs[:, 0]] + points[facet_pairs[:, 1]])
+    fn = None
+    if len(joints):
+        fn = facet_nodes(template, points, joints, facets)
         first_new = len(pts)
-        pts = np.concatenate([pts, mid, mid])
-        upper_side = first_new + np.arange(len(facet_pairs))
-        lower_side = upper_side + len(facet_pairs)
-        for (iap, sap), u, lw in zip(facet_pairs, upper_side, lower_side):
-            extra_tied[owner[int(iap)]].append(int(u))
-            extra_tied[owner[int(sap)]].append(int(lw))
-        facet_conn = np.stack([lower_side, upper_side], 1)  # GAPUNI node 1 = SAP side, node 2 = IAP side
-        source = np.concatenate([source, np.full(2 * len(facet_pairs), -1)])
-        if facets.tip_clearance_mm is not None:
-            # extension stop: two coincident nodes at the IAP tip, one on each vertebra (why coincident: above)
-            tip = points[facet_pairs[:, 0]]
-            first_new = len(pts)
-            pts = np.concatenate([pts, tip, tip])
-            upper_tip = first_new + np.arange(len(facet_pairs))
-            lower_tip = upper_tip + len(facet_pairs)
-            for (iap, sap), u, lw in zip(facet_pairs, upper_tip, lower_tip):
-                extra_tied[owner[int(iap)]].append(int(u))
-                extra_tied[owner[int(sap)]].append(int(lw))
-            facet_conn = np.concatenate([facet_conn, np.stack([lower_tip, upper_tip], 1)])
-            source = np.concatenate([source, np.full(2 * len(facet_pairs), -1)])
+        pts = np.concatenate([pts, fn.points])
+        for v, ix in fn.tied.items():
+            extra_tied[v] = first_new + ix
+        facet_conn = first_new + fn.gaps
+        source = np.concatenate([source, np.full(len(fn.points), -1)])
 
     # annulus hexes last, in their own block when their element type differs
     annulus = np.zeros(len(template.hexes), bool)
@@ -322,17 +210,15 @@ def extract_rom_model(
             elsets[name] = np.array([len(hexes) + i])
             sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[g], length)))
             lig_counts[g] = lig_counts.get(g, 0) + 1
-    if len(facet_pairs):
+    if fn is not None:
         first = len(hexes) + len(lig_conn)
         blocks["FACETS"] = ("GAPUNI", facet_conn)
-        gaps = facet_gaps(template, points, facet_pairs, facets)
-        if facets.tip_clearance_mm is not None:
-            gaps += tip_gaps(template, points, facet_pairs, facets)
-            lig_counts["FACET_TIP"] = len(facet_pairs)
-        for i, (gap, name) in enumerate(gaps):
+        for i, (gap, name) in enumerate(fn.sections):
             elsets[name] = np.array([first + i])
             sections.append(Section(elset=name, gap=gap))
-        lig_counts["FACET"] = len(facet_pairs)
+        lig_counts["FACET"] = len(joints)
+        if facets.tip_clearance_mm is not None:
+            lig_counts["FACET_TIP"] = len(joints)
 
     endplates, frames, rigid = {}, {}, {}
     arch_springs: list[tuple[str, np.ndarray]] = []
@@ -347,7 +233,7 @@ def extract_rom_model(
         endplates[v] = new_of[np.concatenate([inf, sup])]
         frames[v] = vertebra_frame(template, points, v)[0]
         wall = new_of[posterior_wall(template, v)]
-        a = np.concatenate([new_of[anchors[v]], np.asarray(extra_tied[v], dtype=np.int64)])
+        a = np.concatenate([new_of[anchors[v]], extra_tied[v]])
         tied = np.concatenate([wall, a])
         # the loaded top and a unit's fixed bottom vertebra are potted in vitro: the whole vertebra (body
         # and arch) is rigid.  With only its superior endplate rigid, ccx's Newton iterations stalled next
@@ -384,25 +270,6 @@ def extract_rom_model(
         orientations=[o for o in orientations.values() if o.name in used_orient],
     )
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(len(hexes)), source, lig_counts)
-
-
-def vertebra_frame(template: HexTemplate, points: np.ndarray, level: str) -> tuple[np.ndarray, np.ndarray]:
-    """Anatomical frame (3, 3: columns lateral, anterior, cranial) of a vertebra, between its two endplate
-    frames, and the centre (mm) of its endplate nodes."""
-    n2 = len(template.grid.nodes)
-    inf, sup = (body_layer(template, level, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
-    frame = mean_frame(fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame)
-    return frame, points[np.concatenate([inf, sup])].mean(0)
-
-
-def mean_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Orthonormal frame (columns lateral, anterior, cranial) between two endplate frames."""
-    n = a[:, 2] + b[:, 2]
-    n /= np.linalg.norm(n)
-    x = a[:, 0] + b[:, 0]
-    x -= np.dot(x, n) * n
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(n, x), n], 1)
 
 
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:

@@ -422,12 +422,12 @@ class CohortData:
 
             return hex_points_checked(self.template, self.hex_ssm, self.weights_of(name))[0]
         if self.personalization is None:  # a release's deck: its *NODE block, in the template's node order
-            from spinecohort.fe.abaqus import read_inp_nodes
+            from spinecohort.fe.export import read_deck_points
 
-            ids, xyz = read_inp_nodes(self.src.personalized_dir / f"{name}.inp")
-            if len(ids) != self.template.n_nodes or not np.array_equal(ids, np.arange(1, len(ids) + 1)):
-                raise PlatformError(f"{name}.inp does not have the template's {self.template.n_nodes} nodes")
-            return xyz
+            try:
+                return read_deck_points(self.src.personalized_dir / f"{name}.inp", self.template)
+            except ValueError:
+                raise PlatformError(f"{name}.inp does not have the template's {self.template.n_nodes} nodes") from None
         from spinecohort.personalize import personalized_hex
 
         row = self.personalization[self.personalization["ID"].astype(str) == name].iloc[0]

@@ -1,0 +1,193 @@
+"""Facet-joint contact of every spine model: gap elements (ccx/Abaqus GAPUNI) between the articular processes
+of each joint, in the exported decks and in the ROM sub-models alike.  Units: mm, N, degrees.
+
+Each joint (the capsular-ligament anchors: the inferior articular process (IAP) tip of the upper vertebra and
+the superior articular process (SAP) tip of the lower one) gets
+
+* a **joint gap**: two coincident new nodes at the midpoint of the two tips, one tied to each vertebra, closing
+  along the outward normal of the SAP's joint surface (`FacetContact.normal`, textbook inclination and
+  calibrated frontal angle per level);
+* optionally an **extension stop** (`FacetContact.tip_clearance_mm`): two coincident new nodes at the IAP
+  tip, closing along the lower vertebra's cranial axis, i.e. when the tip comes down onto the lamina below.
+
+Why coincident nodes: a gap between the two tips, 12 mm apart, closed under a rigid turn of the whole joint
+(L3 turns ~12 deg in the lumbar model), so the lumbar model came out 4x stiffer in extension than the same
+segment alone (docs/rom.md).  The new nodes hang on their vertebra by the same stiff spring truss as the arch
+(`spinecohort.fe.connections`).  A gap transmits force only when closed, so it never makes a deck one body
+(`spinecohort.fe.connectivity`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from spinecohort.cohort.landmarks import LEVELS
+from spinecohort.fe.connections import arch_owner, body_layer
+from spinecohort.mesh.template import HexTemplate, fit_endplate
+
+Gap = tuple[float, tuple[float, float, float], float]  # clearance mm, unit direction, stiffness N/mm
+
+
+@dataclass(frozen=True)
+class FacetContact:
+    """Facet-joint contact as gap elements (see the module docstring).
+
+    The joint gap acts along the outward normal of the SAP's joint surface, from the orientation of the facet
+    plane: ``transverse_deg``, its angle to the transverse plane (White & Panjabi 1990: thoracic 60, lumbar
+    90), and ``frontal_deg``, its angle to the frontal plane, positive when the SAP surface faces medially,
+    negative when it faces laterally.  Normal = sin(t) (cos(f) posterior + sin(f) medial) + cos(t) cranial in
+    the upper vertebra's anatomical frame.  Both angles are interpolated linearly between the anchor levels
+    given (the upper vertebra of a segment).  The defaults are config/config.yaml's calibrated values (frontal
+    angles inside Masharawi et al. 2004's ranges, docs/rom.md).  clearance_mm: the joint's initial gap;
+    stiffness_n_per_mm: the closed joint; tip_clearance_mm (None = no extension stop) and
+    tip_stiffness_n_per_mm: the IAP tip's gap to the lamina below and its stiffness when closed."""
+
+    clearance_mm: float = 0.5
+    stiffness_n_per_mm: float = 1670.0
+    transverse_deg: tuple[tuple[str, float], ...] = (("T1", 60.0), ("T10", 60.0), ("T12", 90.0), ("L5", 90.0))
+    frontal_deg: tuple[tuple[str, float], ...] = (
+        ("T1", -27.5),
+        ("T10", -27.5),
+        ("T12", 64.0),
+        ("L2", 64.0),
+        ("L3", 50.0),
+        ("L5", 50.0),
+    )
+    tip_clearance_mm: float | None = 1.05
+    tip_stiffness_n_per_mm: float = 200.0
+
+    @staticmethod
+    def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
+        xs = [LEVELS.index(lv) for lv, _ in anchors]
+        if xs != sorted(xs):
+            raise ValueError(f"facet angle anchors must run cranial to caudal, got {anchors}")
+        return float(np.interp(LEVELS.index(level), xs, [a for _, a in anchors]))
+
+    def angles_deg(self, level: str) -> tuple[float, float]:
+        """(transverse, frontal) angle (deg) of the joints of the segment whose upper vertebra is `level`."""
+        return self._interp(self.transverse_deg, level), self._interp(self.frontal_deg, level)
+
+    def normal(self, level: str, frame: np.ndarray, side: float) -> np.ndarray:
+        """Unit normal (SAP -> IAP) of a joint on `side` (+1 right, -1 left) of vertebra `level`, whose frame
+        has the columns lateral (right), anterior, cranial."""
+        t, f = np.radians(self.angles_deg(level))
+        medial = -side * frame[:, 0]
+        n = np.sin(t) * (np.cos(f) * -frame[:, 1] + np.sin(f) * medial) + np.cos(t) * frame[:, 2]
+        return n / np.linalg.norm(n)
+
+    @classmethod
+    def from_config(cls, cfg: dict | None) -> FacetContact | None:
+        """From the config's ``fe.facets`` block (None or ``enabled: false`` -> no contact)."""
+        if not cfg or not cfg.get("enabled", True):
+            return None
+        tip = cfg.get("tip_clearance_mm")
+        return cls(
+            float(cfg["clearance_mm"]),
+            float(cfg["stiffness_n_per_mm"]),
+            tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
+            tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()),
+            None if tip is None else float(tip),
+            float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
+        )
+
+
+@dataclass
+class FacetNodes:
+    """The new nodes and gap elements of the facet joints of a model.
+
+    points (M, 3) mm: the new nodes; gaps (G, 2): GAPUNI node pairs as indices into `points` (node 1 on the
+    lower vertebra, node 2 on the upper); sections: (gap, element set name) per gap element; tied: vertebra ->
+    indices into `points` of the new nodes that belong to it."""
+
+    points: np.ndarray
+    gaps: np.ndarray
+    sections: list[tuple[Gap, str]]
+    tied: dict[str, np.ndarray]
+
+
+def facet_pairs(template: HexTemplate, allowed: np.ndarray | None = None) -> np.ndarray:
+    """(J, 2) template node ids (IAP tip of the upper vertebra, SAP tip of the lower) of every facet joint: the
+    capsular-ligament anchors; allowed: a node mask both ends must be in (a sub-model's nodes)."""
+    cl = template.ligaments[template.elsets["LIG_CL"]]
+    return cl if allowed is None else cl[allowed[cl].all(axis=1)]
+
+
+def vertebra_frame(template: HexTemplate, points: np.ndarray, level: str) -> tuple[np.ndarray, np.ndarray]:
+    """Anatomical frame (3, 3: columns lateral, anterior, cranial) of a vertebra, between its two endplate
+    frames, and the centre (mm) of its endplate nodes."""
+    n2 = len(template.grid.nodes)
+    inf, sup = (body_layer(template, level, t) * n2 + np.arange(n2) for t in (0.0, 1.0))
+    frame = mean_frame(fit_endplate(points[sup]).frame, fit_endplate(points[inf]).frame)
+    return frame, points[np.concatenate([inf, sup])].mean(0)
+
+
+def mean_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Orthonormal frame (columns lateral, anterior, cranial) between two endplate frames."""
+    n = a[:, 2] + b[:, 2]
+    n /= np.linalg.norm(n)
+    x = a[:, 0] + b[:, 0]
+    x -= np.dot(x, n) * n
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(n, x), n], 1)
+
+
+def facet_gaps(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
+) -> list[tuple[Gap, str]]:
+    """(gap, elset name) of each joint gap, in the order of `pairs`; direction from the SAP towards the IAP."""
+    owner = arch_owner(template)
+    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs[:, 0]}}
+    out = []
+    for iap, sap in pairs:
+        up, lo = owner[int(iap)], owner[int(sap)]
+        frame, centre = frames[up]
+        side = 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0  # +1 right
+        n = facets.normal(up, frame, side)
+        name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
+        out.append(((facets.clearance_mm, tuple(map(float, n)), facets.stiffness_n_per_mm), name))
+    return out
+
+
+def tip_gaps(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
+) -> list[tuple[Gap, str]]:
+    """(gap, elset name) of each joint's extension stop: the IAP tip of the upper vertebra coming down onto
+    the lamina of the lower one.  Direction: the lower vertebra's cranial axis (node 1 on the lower vertebra,
+    node 2 at the IAP tip), so the gap closes when the tip moves caudally."""
+    owner = arch_owner(template)
+    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs.ravel()}}
+    out = []
+    for iap, sap in pairs:
+        up, lo = owner[int(iap)], owner[int(sap)]
+        frame_up, centre_up = frames[up]
+        side = "R" if (points[iap] - centre_up) @ frame_up[:, 0] > 0 else "L"
+        gap = (float(facets.tip_clearance_mm), tuple(map(float, frames[lo][0][:, 2])), facets.tip_stiffness_n_per_mm)
+        out.append((gap, f"FACET_TIP_{up}{lo}_{side}"))
+    return out
+
+
+def facet_nodes(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact) -> FacetNodes:
+    """The new nodes, gap elements and ties of the joints `pairs` (`facet_pairs`) of a model with coordinates
+    `points` (template node order, mm)."""
+    owner = arch_owner(template)
+    j = len(pairs)
+    upper = [owner[int(i)] for i in pairs[:, 0]]
+    lower = [owner[int(i)] for i in pairs[:, 1]]
+    blocks = [0.5 * (points[pairs[:, 0]] + points[pairs[:, 1]])] * 2  # joint: upper side, lower side
+    sections = facet_gaps(template, points, pairs, facets)
+    if facets.tip_clearance_mm is not None:
+        blocks += [points[pairs[:, 0]]] * 2  # extension stop: at the IAP tip
+        sections += tip_gaps(template, points, pairs, facets)
+    pts = np.concatenate(blocks) if j else np.zeros((0, 3))
+    kinds = len(blocks) // 2
+    up_idx = np.concatenate([2 * k * j + np.arange(j) for k in range(kinds)]) if j else np.zeros(0, np.int64)
+    lo_idx = up_idx + j
+    gaps = np.stack([lo_idx, up_idx], 1).astype(np.int64)  # GAPUNI node 1 = lower vertebra, node 2 = upper
+    tied: dict[str, list[int]] = {}
+    for k in range(kinds):
+        for i in range(j):
+            tied.setdefault(upper[i], []).append(int(2 * k * j + i))
+            tied.setdefault(lower[i], []).append(int(2 * k * j + j + i))
+    return FacetNodes(pts, gaps, sections, {v: np.asarray(ix, dtype=np.int64) for v, ix in tied.items()})
