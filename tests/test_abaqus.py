@@ -315,3 +315,17 @@ def test_data_check_replaces_the_fibre_law_by_its_ground_substance():
     assert out.replace(out[out.index("*MATERIAL, NAME=ELASTIC_FIBER_AF") :], "") == text.replace(
         text[text.index("*MATERIAL, NAME=ELASTIC_FIBER_AF") :], ""
     )
+
+
+def test_every_float_field_fits_ccx_20_characters():
+    # ccx 2.20 reads 20 characters of a field: repr(2.4178372958533995e-05) has 22 and ccx stopped with
+    # "*ERROR reading *GAP"; the writer falls back to 14 significant digits (relative error <= 5e-15)
+    from spinecohort.fe.abaqus import MAX_FIELD_CHARS, _fmt_float
+
+    rng = np.random.default_rng(0)
+    xs = np.concatenate([[2.4178372958533995e-05, -1.0 / 3.0, 1e-300, -123.45678901234567], rng.normal(size=1000)])
+    xs = np.concatenate([xs, xs * 1e-7, xs * 1e5])
+    out = [_fmt_float(x) for x in xs]
+    assert max(len(s) for s in out) <= MAX_FIELD_CHARS
+    np.testing.assert_allclose([float(s) for s in out], xs, rtol=5e-14)
+    assert _fmt_float(0.5) == "0.5" and _fmt_float(1670.0) == "1670.0"  # short values are unchanged

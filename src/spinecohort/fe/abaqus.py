@@ -319,8 +319,15 @@ def format_id_list(ids_1based: np.ndarray) -> str:
     return text
 
 
+#: ccx 2.20 reads the first 20 characters of a data field (e.g. '2.4178372958533995E-05' gave
+#: "*ERROR reading *GAP"); Abaqus reads 20 too in fixed-length fields
+MAX_FIELD_CHARS = 20
+
+
 def _fmt_float(x: float) -> str:
-    return repr(float(x))
+    """Shortest round-tripping repr, or 14 significant digits when that would exceed MAX_FIELD_CHARS."""
+    s = repr(float(x))
+    return s if len(s) <= MAX_FIELD_CHARS else f"{float(x):.14g}"
 
 
 def _material_text(mat) -> str:
