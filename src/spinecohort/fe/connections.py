@@ -114,7 +114,8 @@ def nearest_targets(points: np.ndarray, piece: np.ndarray, candidates: np.ndarra
     return np.sort(candidates[np.argsort(dist, kind="stable")[:k]])
 
 
-def _drop_short(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+def drop_short(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """The spring pairs at least MIN_SPRING_MM long (a zero-length SPRINGA stops ccx: springforc_n2f)."""
     length = np.linalg.norm(points[pairs[:, 1]] - points[pairs[:, 0]], axis=1)
     return pairs[length >= MIN_SPRING_MM]
 
@@ -141,12 +142,12 @@ def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.
         spread = [spread_nodes(points, p, centre) for p in skin_pieces(template, f"POST_{v}")]
         anchors = np.intersect1d(arch_nodes(template, v), lig_ends)
         attach = np.concatenate([anchors, np.setdiff1d(np.concatenate(spread), anchors)])
-        out[f"CONN_ARCH_{v}"] = _drop_short(points, truss_pairs(attach, wall))
+        out[f"CONN_ARCH_{v}"] = drop_short(points, truss_pairs(attach, wall))
     s1_plate = np.arange(len(template.grid.nodes))
     if "SACRUM" in template.elsets:
         centre = points[s1_plate].mean(0)
         pairs = [truss_pairs(spread_nodes(points, p, centre), s1_plate) for p in skin_pieces(template, "SACRUM")]
-        out["CONN_SACRUM"] = _drop_short(points, np.concatenate(pairs))
+        out["CONN_SACRUM"] = drop_short(points, np.concatenate(pairs))
     for part, base in (("PELVIS", "SACRUM"), ("FH_L", "PELVIS"), ("FH_R", "PELVIS")):
         if part not in template.elsets or base not in template.elsets:
             continue
@@ -155,5 +156,5 @@ def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.
         for piece in skin_pieces(template, part):
             target = nearest_targets(points, piece, candidates, NEAREST_TARGETS)
             pairs.append(truss_pairs(spread_nodes(points, piece, points[target].mean(0)), target))
-        out[f"CONN_{part}"] = _drop_short(points, np.concatenate(pairs))
+        out[f"CONN_{part}"] = drop_short(points, np.concatenate(pairs))
     return out

@@ -37,6 +37,7 @@ from spinecohort.fe.connections import (
     CONNECTOR_TABLE,
     arch_nodes,
     body_layer,
+    drop_short,
     posterior_wall,
     truss_pairs,
 )
@@ -248,7 +249,8 @@ def extract_rom_model(
             # the anchors.  Seven *RIGID BODY arches in the lumbar model stalled ccx's Newton iterations
             # (flexion: 14 -> 43 iterations per increment, no convergence past 35 % of the load, discs
             # alone); without them, 10 per increment to the full load (docs/rom.md).
-            pairs = truss_pairs(a, wall)
+            # less than MIN_SPRING_MM long (the extension stop's node sits on the IAP-tip anchor): no direction
+            pairs = drop_short(pts, truss_pairs(a, wall))
             arch_springs.append((v, pairs))
     if bottom == "S1":
         fixed = new_of[np.arange(n2)]
