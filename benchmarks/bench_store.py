@@ -1,7 +1,7 @@
 """Benchmark of the virtual-cohort store stage: init -> shard jobs -> check_store, against the codec floor.
 
     python benchmarks/bench_store.py [--results results] [--shard-models 343] [--shards 0 24 48]
-                                     [--explore] [--explore-models 49]
+    python benchmarks/bench_store.py --explore [--explore-sample spread|corner]
 
 Needs the inputs of the shard jobs of a default-config run (``snakemake -j2 results/template/hex_ssm.npz``:
 ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store in a temporary folder with the
@@ -16,8 +16,9 @@ own process (the ``sample_shard`` job's code, ``store.shards.run_shard_job``), t
   implementation) compared with zarr-python's;
 * the extrapolation to the default 16,807 models in shards of ``store.shard_models`` on 2 cores.
 
-``--explore``: bytes per node and encode speed of the alternative layouts and codecs (core Zarr v3 codecs
-only) on the first ``--explore-models`` models of the first listed shard (docs/store.md).
+``--explore`` (instead of the stage): bytes per node and encode speed of the alternative layouts and codecs
+(core Zarr v3 codecs only) on a sample of real models (``EXPLORE_SAMPLES``), and how far each coordinate
+rounding moves the measured parameters (docs/store.md).
 """
 
 from __future__ import annotations
@@ -116,63 +117,126 @@ def drop_from_page_cache(files) -> None:
             os.close(fd)
 
 
-def explore(results: Layout, shard: int, shard_models: int, n: int) -> None:
-    """B/node and encode MB/s of alternative core-codec layouts on n models of ``shard``."""
-    from numcodecs import Blosc, Zstd
+EXPLORE_SAMPLES = {
+    # shard 0 of 343 models (w1 = w2 = -3, the most deformed corner), its first 49 models
+    "corner": [np.arange(0, 49)],
+    # one 49-model batch (w3 = 0, w4 = -3..3, w5 = -3..3) from the middle of each default 2,401-model shard
+    "spread": [np.arange(s * 2401 + 3 * 343 + 3 * 49, s * 2401 + 3 * 343 + 4 * 49) for s in range(7)],
+}
+_BIT, _BYTE = 2, 1  # numcodecs Blosc.BITSHUFFLE, Blosc.SHUFFLE
+#: (quantum exponent or None (unrounded) or "um" (int32 um), models per chunk, stored order, blosc clevel
+#: (0: zstd 3 alone), shuffle, blosc block KiB); stored order: outermost axis first of (m)odel, (n)ode, (c)oordinate
+EXPLORE_VARIANTS = [
+    (10, 1, (0, 2, 1), 1, _BIT, 1024),
+    (10, 7, (2, 0, 1), 1, _BIT, 1024),
+    (10, 7, (2, 1, 0), 1, _BIT, 1024),  # format 2
+    (10, 7, (2, 1, 0), 1, _BYTE, 1024),
+    (10, 7, (2, 1, 0), 0, 0, 0),
+    (10, 7, (1, 2, 0), 2, _BIT, 256),
+    (10, 7, (2, 1, 0), 1, _BIT, 224),
+    (10, 7, (2, 1, 0), 2, _BIT, 128),
+    (10, 7, (2, 1, 0), 2, _BIT, 192),
+    (10, 7, (2, 1, 0), 2, _BIT, 224),  # format 3 (chosen)
+    (10, 7, (2, 1, 0), 2, _BIT, 256),
+    (10, 7, (2, 1, 0), 2, _BIT, 1024),
+    (10, 7, (2, 1, 0), 2, _BIT, 4096),
+    (10, 7, (2, 1, 0), 3, _BIT, 224),
+    (10, 7, (2, 1, 0), 4, _BIT, 224),
+    (10, 49, (2, 1, 0), 1, _BIT, 224),
+    (10, 49, (2, 1, 0), 2, _BIT, 224),
+    (9, 7, (2, 1, 0), 1, _BIT, 1024),
+    (9, 7, (2, 1, 0), 2, _BIT, 224),
+    (None, 7, (2, 1, 0), 2, _BIT, 224),
+    ("um", 7, (2, 1, 0), 2, _BIT, 224),
+]
 
+
+def _explore_values(x64: np.ndarray, q) -> np.ndarray:
+    if q is None:
+        return x64.astype(np.float32)
+    if q == "um":
+        return np.rint(x64 * 1000).astype(np.int32)
+    return (np.rint(x64 * 2.0**q) / 2.0**q).astype(np.float32)
+
+
+def explore(results: Layout, sample: str, measure_cfg: dict) -> None:
+    """B/node and encode MB/s of alternative core-codec layouts on ``sample`` (EXPLORE_SAMPLES), and how far
+    each rounding moves the measured parameters (the issue's tolerance: 1e-3 deg, 1e-3 mm)."""
+    import pandas as pd
+    from numcodecs import Blosc, Zstd, blosc
+
+    from spinecohort.cohort.loading import load_cohort_npz
+    from spinecohort.measure.spinopelvic import UNITS, measure
+    from spinecohort.mesh.contact import resolve_contact
     from spinecohort.mesh.hex_ssm import HexSSM
     from spinecohort.ssm.model import SSM
-    from spinecohort.store.shards import sample_points
 
-    a, _ = S.shard_range(shard, shard_models)
-    w = S.weights_of(np.arange(a, a + n))
-    tri, hexp = sample_points(SSM.load(results.ssm), HexSSM.load(results.hex_ssm), w)
-    x64 = [tri.astype(np.float64), hexp.astype(np.float64)]
-    reps = {
-        "float32 mm / 2^-10": [S.quantize_mm(x) for x in x64],
-        "float32 mm / 2^-9": [(np.rint(x * 512) / 512).astype(np.float32) for x in x64],
-        "float32 mm, unrounded": [x.astype(np.float32) for x in x64],
-        "int32 um (needs CF decoding)": [np.rint(x * 1000).astype(np.int32) for x in x64],
-    }
-    bit, byte = Blosc.BITSHUFFLE, Blosc.SHUFFLE
-    variants = [
-        ("float32 mm / 2^-10", 1, (0, 2, 1), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 1, (0, 2, 1), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 0, 1), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 2, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 1, byte, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 1, bit, 0)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Zstd(3)),
-        ("float32 mm / 2^-10", 49, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 49, (2, 1, 0), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-9", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm, unrounded", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("int32 um (needs CF decoding)", 1, (0, 2, 1), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("int32 um (needs CF decoding)", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-    ]
-    print(f"\nExplore: {n} models of shard {shard} ({tri.shape[1]} tri + {hexp.shape[1]} hex nodes), core codecs only")
-    print(f"{'values':<30s} {'models/chunk':>12s} {'stored order':>14s} {'codec':<34s} {'B/node':>7s} {'enc MB/s':>9s}")
-    for rep, per, order, codec in variants:
-        nbytes = raw = 0
-        cpu = 0.0
-        for q in reps[rep]:
-            for i in range(0, len(q), per):
-                c = np.ascontiguousarray(q[i : i + per].transpose(order))
-                t0 = time.process_time()
-                nbytes += len(codec.encode(c))
-                cpu += time.process_time() - t0
-                raw += c.nbytes
-        nodes = n * (tri.shape[1] + hexp.shape[1])
-        axes = "".join("mnc"[k] for k in order)  # m model, n node, c coordinate; outermost first
-        cfg = codec.get_config()
-        name = (
-            f"blosc {['no', 'byte', 'bit'][cfg['shuffle']]}shuffle zstd {cfg['clevel']} bs={cfg['blocksize'] >> 10}k"
-            if cfg["id"] == "blosc"
-            else f"zstd {cfg['level']}"
+    blosc.set_nthreads(1)
+    ssm, hex_ssm = SSM.load(results.ssm), HexSSM.load(results.hex_ssm)
+    landmarks = load_cohort_npz(results.cohort).landmarks
+    kw = dict(
+        vertical=measure_cfg["vertical_axis"], assumed_age=measure_cfg["assumed_age"], c7_proxy=measure_cfg["c7_proxy"]
+    )
+    df_t = ssm.deformation_fields(S.DEFAULT_N_MODES).reshape(S.DEFAULT_N_MODES, -1)
+    df_h = hex_ssm.fields[: S.DEFAULT_N_MODES].reshape(S.DEFAULT_N_MODES, -1)
+    acc = {v: np.zeros(3) for v in EXPLORE_VARIANTS}  # tri bytes, hex bytes, encode CPU s
+    raw = dict.fromkeys(EXPLORE_VARIANTS, 0)
+    n_tri = n_hex = 0
+    moved = {}  # quantum -> (max |d angle| deg, max |d length| mm, worst angle, worst length)
+    for ids in EXPLORE_SAMPLES[sample]:
+        w = S.weights_of(ids)
+        t = (ssm.mean.ravel() + w @ df_t).reshape(len(w), *ssm.mean.shape)  # float64, as in the shard job
+        h = (hex_ssm.mean.ravel() + w @ df_h).reshape(len(w), *hex_ssm.mean.shape)
+        if hex_ssm.contact is not None:
+            resolve_contact(t, h, hex_ssm.contact)
+        n_tri += t.shape[0] * t.shape[1]
+        n_hex += h.shape[0] * h.shape[1]
+        p64 = measure(t, landmarks, **kw)
+        num = [c for c in p64.columns if pd.api.types.is_float_dtype(p64[c])]
+        for q in (10, 9):
+            d = (measure(_explore_values(t, q), landmarks, **kw)[num] - p64[num]).abs().max()
+            deg = d[[c for c in num if UNITS.get(c) == "deg"]]
+            mm = d[[c for c in num if UNITS.get(c) == "mm"]]
+            old = moved.get(q, (0.0, 0.0, "", ""))
+            moved[q] = (
+                max(old[0], deg.max()),
+                max(old[1], mm.max()),
+                deg.idxmax() if deg.max() > old[0] else old[2],
+                mm.idxmax() if mm.max() > old[1] else old[3],
+            )
+        for v in EXPLORE_VARIANTS:
+            q, per, order, clevel, shuffle, block = v
+            codec = Zstd(3) if clevel == 0 else Blosc("zstd", clevel, shuffle, block << 10)
+            for k, x in enumerate((t, h)):
+                vals = _explore_values(x, q)
+                for i in range(0, len(vals), per):
+                    c = np.ascontiguousarray(vals[i : i + per].transpose(order))
+                    t0 = time.process_time()
+                    acc[v][k] += len(codec.encode(c))
+                    acc[v][2] += time.process_time() - t0
+                    raw[v] += c.nbytes
+    n = sum(map(len, EXPLORE_SAMPLES[sample]))
+    print(f"\nExplore ({sample}: {n} models, {n_tri // n} tri + {n_hex // n} hex nodes each), core codecs only")
+    print(
+        f"{'values':<22s} {'models/chunk':>12s} {'order':>6s} {'codec':<36s} {'B/node':>7s} {'tri':>6s} {'hex':>6s} {'enc MB/s':>9s}"
+    )
+    for v, (bt, bh, cpu) in acc.items():
+        q, per, order, clevel, shuffle, block = v
+        vals = {None: "float32 mm, unrounded", "um": "int32 um"}.get(q, f"float32 mm / 2^-{q}")
+        codec = (
+            "zstd 3, no shuffle"
+            if clevel == 0
+            else f"blosc {['no', 'byte', 'bit'][shuffle]}shuffle clevel {clevel}, {block} KiB"
         )
-        print(f"{rep:<30s} {per:>12d} {axes:>14s} {name:<34s} {nbytes / nodes:7.2f} {raw / max(cpu, 1e-9) / 1e6:9.0f}")
+        axes = "".join("mnc"[k] for k in order)
+        print(
+            f"{vals:<22s} {per:>12d} {axes:>6s} {codec:<36s} {(bt + bh) / (n_tri + n_hex):7.3f} {bt / n_tri:6.3f} "
+            f"{bh / n_hex:6.3f} {raw[v] / max(cpu, 1e-9) / 1e6:9.0f}"
+        )
+    for q, (deg, mm, wdeg, wmm) in moved.items():
+        print(
+            f"2^-{q} mm rounding of the tri model moves the parameters by <= {deg:.2e} deg ({wdeg}), {mm:.2e} mm ({wmm})"
+        )
 
 
 def main(argv=None) -> int:
@@ -182,7 +246,7 @@ def main(argv=None) -> int:
     ap.add_argument("--shard-models", type=int, default=343, help="models per shard in this benchmark")
     ap.add_argument("--shards", type=int, nargs="+", default=[0, 24, 48])
     ap.add_argument("--explore", action="store_true")
-    ap.add_argument("--explore-models", type=int, default=49)
+    ap.add_argument("--explore-sample", choices=sorted(EXPLORE_SAMPLES), default="spread")
     a = ap.parse_args(argv)
     cfg = yaml.safe_load(Path(a.config).read_text())
     L = Layout(a.results)
@@ -190,6 +254,9 @@ def main(argv=None) -> int:
     for k, v in inputs.items():
         if not Path(v).is_file():
             raise SystemExit(f"{v} missing: run `snakemake -j2 {L.hex_ssm}` on the default config first ({k})")
+    if a.explore:
+        explore(L, a.explore_sample, cfg["measure"])
+        return 0
     grid = cfg["grid"]
     total = S.n_models(grid["n_modes"], grid["levels"])
     with tempfile.TemporaryDirectory(prefix="bench-store-") as tmp:
@@ -293,8 +360,6 @@ def main(argv=None) -> int:
                 f"{rounds} rounds, check ~{check_s:.0f} s: store stage ~{est / 60:.1f} min (goal <= 5 min)"
             )
         print(f"store size ~{nbytes / nodes * total * (n_tri + n_hex) / 1e9:.1f} GB")
-    if a.explore:
-        explore(L, a.shards[0], a.shard_models, a.explore_models)
     return 0
 
 

@@ -18,7 +18,8 @@ specification, so any conforming reader (zarr-python, tensorstore, zarrs, zarr.j
 float32 for |x| < 16 m, so the stored value *is* the rounded one: error <= 2^-11 mm = 0.49 um), an inner
 chunk holds the ``chunk_models`` models along the last mode, and the ``transpose`` codec stores it
 coordinate-major with the model axis innermost (x of node 0 of the 7 models, x of node 1, ...), where
-neighbouring values share their high bits; ``blosc`` (bitshuffle, zstd level 1) then packs the bit planes.
+neighbouring values share their high bits; ``blosc`` (bitshuffle, zstd level 3, blocks of 8,192 nodes x 7
+models) then packs the bit planes.
 Sharding codec: one shard object per array per shard, index at the end with crc32c.
 
 :class:`ShardWriter` writes a shard object itself (the sharding format: the encoded inner chunks, then the
@@ -50,13 +51,15 @@ DEFAULT_SHARD_MODELS = 2401
 QUANTUM_EXP = 10
 ENCODINGS = ("float32-q10", "float32")
 POINT_ARRAYS = ("tri/points", "hex/points")
-#: version 2: core Zarr v3 codecs only (version 1 used numcodecs filters: refused, see _open_meta)
-STORE_FORMAT = "spinecohort.cohort-store/2"
+#: version 3: blosc clevel 2 on 224 KiB blocks (version 2: clevel 1 on 1 MiB blocks; version 1: numcodecs
+#: filters); a store of another version is refused, see _open_meta
+STORE_FORMAT = "spinecohort.cohort-store/3"
 _FORMAT_PREFIX = "spinecohort.cohort-store/"
-#: blosc inside each inner chunk: zstd level 1 with bitshuffle on 1 MiB blocks (docs/store.md: levels 2-3
-#: save 1-2 % of the bytes at 2-5x the encode time)
-BLOSC_CLEVEL = 1
-BLOSC_BLOCK_BYTES = 1 << 20
+#: blosc inside each inner chunk: bitshuffle, clevel 2 (blosc's zstd level 3) on blocks of 224 KiB = 8,192
+#: nodes x 7 models x 4 B (docs/store.md: -3.6 % of the bytes of clevel 1 on 1 MiB blocks at ~1.8x its encode
+#: CPU; 1 MiB and 4 MiB blocks compress worse, blosc's clevel 3 is no better)
+BLOSC_CLEVEL = 2
+BLOSC_BLOCK_BYTES = 224 << 10
 #: transpose of an inner chunk (models, nodes, xyz) -> stored (xyz, nodes, models)
 CHUNK_ORDER = (2, 1, 0)
 _CHECKSUM_DIR = "checksums"
@@ -327,7 +330,7 @@ def _open_meta(path: str | Path) -> tuple[zarr.Group, dict]:
         if isinstance(fmt, str) and fmt.startswith(_FORMAT_PREFIX):
             raise StoreVersionError(
                 f"{p} was written by another spinecohort version (format {fmt!r}, this version reads "
-                f"{STORE_FORMAT!r}: core Zarr v3 codecs only); it cannot be read correctly. Rebuild it: "
+                f"{STORE_FORMAT!r}); it cannot be read correctly. Rebuild it: "
                 f"remove {p} and the shard records (results/shards/), then run snakemake again"
             )
         raise ValueError(f"{p} is not a spinecohort cohort store (format {fmt!r})")
