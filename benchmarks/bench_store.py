@@ -288,8 +288,7 @@ def main(argv=None) -> int:
             records.append(rec)
             n = rec["models"][1] - rec["models"][0]
             phases = {
-                k[:-2]: round(rec[k], 1)
-                for k in ("load_s", "sample_s", "check_repair_s", "table3_s", "measure_s", "write_s", "close_s")
+                k[:-2]: round(rec[k], 1) for k in ("load_s", "sample_s", "quality_s", "measure_s", "write_s", "close_s")
             }
             print(
                 f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['rss_mb']:7.0f} {n / r['wall_s']:8.1f} "
