@@ -1,20 +1,25 @@
 """Benchmark of the virtual-cohort store stage: init -> shard jobs -> check_store, against the codec floor.
 
-    python benchmarks/bench_store.py [--results results] [--shard-models 343] [--shards 0 24 48]
+    python benchmarks/bench_store.py [--results results] [--out DIR] [--shard-models 343] [--shards 0 24 48]
+                                     [--all] [--jobs 2]
     python benchmarks/bench_store.py --explore [--explore-sample spread|corner]
 
 Needs the inputs of the shard jobs of a default-config run (``snakemake -j2 results/template/hex_ssm.npz``:
-ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store in a temporary folder with the
-default grid (7^5 = 16,807 models) cut into shards of ``--shard-models``, runs the listed shards each as its
-own process (the ``sample_shard`` job's code, ``store.shards.run_shard_job``), then ``check_store``, and prints:
+ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a temporary folder under
+``--out``, removed at the end) with the default grid (7^5 = 16,807 models) cut into shards of
+``--shard-models``, runs the listed shards (``--all``: every shard, i.e. the whole store stage) each as its
+own process with Snakemake's one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
+``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
-* per job: wall, CPU (user + system, from ``wait4``), peak RSS, models/s, stored bytes per node;
-* the **compression floor**: CPU time to encode the same stored values with the same codec chain
-  (transpose + blosc bitshuffle zstd) and nothing else, measured in this run, and the stage's CPU / floor;
+* per job: wall, CPU (user + system, from ``wait4``), peak RSS, bytes per node, encode CPU, CPU per phase;
+* bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
+  chain (transpose + blosc) and nothing else, measured in this run; the store stage's CPU / floor and the
+  write phase's CPU / floor;
+* wall per shard job, peak RSS, and with ``--all`` the measured wall of the whole stage;
 * a cold read of one model's tri + hex coordinates (the shard files dropped from the page cache with
   ``posix_fadvise(DONTNEED)``, fresh process), and the same model read by tensorstore (a second Zarr v3
   implementation) compared with zarr-python's;
-* the extrapolation to the default 16,807 models in shards of ``store.shard_models`` on 2 cores.
+* without ``--all``: the extrapolation to the default 16,807 models in shards of ``store.shard_models``.
 
 ``--explore`` (instead of the stage): bytes per node and encode speed of the alternative layouts and codecs
 (core Zarr v3 codecs only) on a sample of real models (``EXPLORE_SAMPLES``), and how far each coordinate
@@ -71,18 +76,39 @@ ONE_THREAD = {
 }
 
 
-def run(cmd: list[str]) -> dict:
-    """Run a process as a threads: 1 job; its wall time, CPU time (user + system) and peak RSS from wait4."""
-    t0 = time.perf_counter()
+def run_jobs(cmds: list[list[str]], jobs: int = 1, logdir: Path | None = None) -> list[dict]:
+    """Run processes as threads: 1 jobs, at most ``jobs`` at a time (Snakemake -j``jobs``); per process its
+    wall time, CPU time (user + system) and peak RSS from wait4, and its stdout."""
     env = {**os.environ, **ONE_THREAD}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    _, status, ru = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    out, err = proc.stdout.read(), proc.stderr.read()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{cmd[:3]} failed ({proc.returncode}): {err[-2000:]}")
-    return {"wall_s": wall, "cpu_s": ru.ru_utime + ru.ru_stime, "rss_mb": ru.ru_maxrss / 1024, "out": out}
+    logdir = Path(logdir or tempfile.mkdtemp(prefix="bench-store-logs-"))
+    out, running, todo = [None] * len(cmds), {}, list(enumerate(cmds))
+    while todo or running:
+        while todo and len(running) < jobs:
+            k, cmd = todo.pop(0)
+            fo, fe = open(logdir / f"{k}.out", "w"), open(logdir / f"{k}.err", "w")
+            proc = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True, env=env)
+            running[proc.pid] = (k, time.perf_counter(), fo, fe)
+        pid, status, ru = os.wait4(-1, 0)
+        if pid not in running:
+            continue
+        k, t0, fo, fe = running.pop(pid)
+        fo.close()
+        fe.close()
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            raise RuntimeError(f"{cmds[k][:3]} failed ({code}): {(logdir / f'{k}.err').read_text()[-2000:]}")
+        out[k] = {
+            "wall_s": time.perf_counter() - t0,
+            "cpu_s": ru.ru_utime + ru.ru_stime,
+            "rss_mb": ru.ru_maxrss / 1024,
+            "out": (logdir / f"{k}.out").read_text(),
+        }
+    return out
+
+
+def run(cmd: list[str]) -> dict:
+    """One process as a threads: 1 job (see :func:`run_jobs`)."""
+    return run_jobs([cmd])[0]
 
 
 def codec_floor(path: Path, shards: list[int]) -> float:
@@ -243,8 +269,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default="results", help="results folder of a default-config run (inputs)")
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
+    ap.add_argument("--out", help="folder for the benchmark's store and shard files (default: a temporary one)")
     ap.add_argument("--shard-models", type=int, default=343, help="models per shard in this benchmark")
     ap.add_argument("--shards", type=int, nargs="+", default=[0, 24, 48])
+    ap.add_argument("--all", action="store_true", help="every shard of the grid: the whole store stage")
+    ap.add_argument("--jobs", type=int, default=1, help="shard jobs at a time (2 = snakemake -j2 on 2 cores)")
     ap.add_argument("--explore", action="store_true")
     ap.add_argument("--explore-sample", choices=sorted(EXPLORE_SAMPLES), default="spread")
     a = ap.parse_args(argv)
@@ -257,100 +286,133 @@ def main(argv=None) -> int:
     if a.explore:
         explore(L, a.explore_sample, cfg["measure"])
         return 0
+    if a.out:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="bench-store-", dir=a.out) as tmp:
+        stage(Path(tmp), cfg, inputs, a)
+    return 0
+
+
+def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
+    """init -> shard jobs -> check_store in ``tmp``, then the floor, the cold read and the summary lines."""
     grid = cfg["grid"]
     total = S.n_models(grid["n_modes"], grid["levels"])
-    with tempfile.TemporaryDirectory(prefix="bench-store-") as tmp:
-        store = Path(tmp) / "cohort.zarr"
-        t0, c0 = time.perf_counter(), time.process_time()
-        with np.load(L.ssm) as z:
-            n_tri = z["mean"].shape[0]
-        with np.load(L.hex_ssm) as z:
-            n_hex = z["mean"].shape[0]
-        S.create_store(
-            store, n_tri, n_hex, grid["n_modes"], grid["levels"], a.shard_models, {}, cfg["store"]["encoding"]
+    shards = list(range(S.n_shards(total, a.shard_models))) if a.all else a.shards
+    store = tmp / "cohort.zarr"
+    t_stage = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
+    with np.load(inputs["ssm"]) as z:
+        n_tri = z["mean"].shape[0]
+    with np.load(inputs["hex_ssm"]) as z:
+        n_hex = z["mean"].shape[0]
+    S.create_store(store, n_tri, n_hex, grid["n_modes"], grid["levels"], a.shard_models, {}, cfg["store"]["encoding"])
+    init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+    print(
+        f"store: {total} models x ({n_tri} tri + {n_hex} hex nodes), shards of {a.shard_models}, "
+        f"format {S.STORE_FORMAT}; init {init['wall_s']:.2f} s; {len(shards)} shard jobs, {a.jobs} at a time"
+    )
+    cmds, outs = [], {}
+    for s in shards:
+        outs[s] = {k: str(tmp / f"{s:05d}.{k}") for k in ("quality", "params", "tri_vs_hex", "record")}
+        arg = dict(
+            store=str(store), shard=s, inputs=inputs, outputs=outs[s], settings=cfg["store"], measure=cfg["measure"]
         )
-        init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+        cmds.append([sys.executable, "-c", _JOB, json.dumps(arg)])
+    t_jobs = time.perf_counter()
+    jobs = run_jobs(cmds, a.jobs, tmp)
+    jobs_wall = time.perf_counter() - t_jobs
+    records = [json.loads(Path(outs[s]["record"]).read_text()) for s in shards]
+    phases = ("load", "sample", "quality", "measure", "write", "close")
+    print(
+        f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'RSS MB':>7s} {'B/node':>7s} {'enc CPU s':>9s}  "
+        f"CPU s per phase ({', '.join(phases)}; quality = check + repair + Table 3)"
+    )
+    for s, r, rec in zip(shards, jobs, records):
+        n = rec["models"][1] - rec["models"][0]
+        cpu = " ".join(f"{rec[f'{k}_cpu_s']:5.1f}" for k in phases)
         print(
-            f"store: {total} models x ({n_tri} tri + {n_hex} hex nodes), shards of {a.shard_models}; init {init['wall_s']:.2f} s"
+            f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['rss_mb']:7.0f} "
+            f"{rec['stored_bytes'] / rec['stored_nodes']:7.3f} {rec['encode_cpu_s']:9.2f}  {cpu}"
         )
+    chk = run([sys.executable, "-c", _CHECK, str(store)])
+    stage_wall = time.perf_counter() - t_stage
+    bad = int(chk["out"].strip())
+    print(f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU, {bad} shards flagged (unwritten ones)")
+    floor = codec_floor(store, shards)
+    models = sum(r["models"][1] - r["models"][0] for r in records)
+    stage_cpu = init["cpu_s"] + sum(j["cpu_s"] for j in jobs) + chk["cpu_s"]
+    nbytes = sum(r["stored_bytes"] for r in records)
+    nodes = sum(r["stored_nodes"] for r in records)
+    enc = sum(r["encode_cpu_s"] for r in records)
+    write_cpu = sum(r["write_cpu_s"] for r in records)
+    print(f"\n== {models} models in {len(shards)} shards of {a.shard_models}, {a.jobs} job(s) at a time ==")
+    print(f"bytes per node: {nbytes / nodes:.3f} B/node (goal <= 5); {nbytes / 1e9:.2f} GB")
+    print(
+        f"compression floor (the stored values through transpose + blosc alone, this run): {floor:.2f} s CPU "
+        f"(the jobs' own encode CPU: {enc:.2f} s)"
+    )
+    print(
+        f"store-stage CPU (init + jobs + check): {stage_cpu:.1f} s -> CPU / floor = {stage_cpu / floor:.2f} "
+        f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, sha256, file writes): "
+        f"{write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
+    )
+    per_phase = {k: sum(r[f"{k}_cpu_s"] for r in records) for k in phases}
+    start_up = sum(j["cpu_s"] for j in jobs) - sum(per_phase.values())
+    print(
+        "CPU by phase, all jobs: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in per_phase.items())
+        + f", interpreter start + imports {start_up:.1f} s, check_store {chk['cpu_s']:.1f} s"
+    )
+    walls = [j["wall_s"] for j in jobs]
+    print(
+        f"wall per shard job: {min(walls):.1f}-{max(walls):.1f} s (median {np.median(walls):.1f}); peak RSS per job "
+        f"{max(j['rss_mb'] for j in jobs):.0f} MB (goal <= 1500); jobs {jobs_wall:.1f} s wall"
+    )
+    if a.all:
         print(
-            f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'RSS MB':>7s} {'models/s':>8s} {'B/node':>7s} {'enc CPU s':>9s}  phases (s)"
+            f"whole store stage (init -> {len(shards)} shards, {a.jobs} at a time -> check_store), measured: "
+            f"{stage_wall:.1f} s = {stage_wall / 60:.2f} min wall (goal <= 5 min), load average now "
+            f"{os.getloadavg()[0]:.1f}"
         )
-        jobs, records = [], []
-        for s in a.shards:
-            outs = {k: str(Path(tmp) / f"{s:05d}.{k}") for k in ("quality", "params", "tri_vs_hex", "record")}
-            arg = dict(
-                store=str(store), shard=s, inputs=inputs, outputs=outs, settings=cfg["store"], measure=cfg["measure"]
-            )
-            r = run([sys.executable, "-c", _JOB, json.dumps(arg)])
-            rec = json.loads(Path(outs["record"]).read_text())
-            jobs.append(r)
-            records.append(rec)
-            n = rec["models"][1] - rec["models"][0]
-            phases = {
-                k[:-2]: round(rec[k], 1) for k in ("load_s", "sample_s", "quality_s", "measure_s", "write_s", "close_s")
-            }
-            print(
-                f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['rss_mb']:7.0f} {n / r['wall_s']:8.1f} "
-                f"{rec['stored_bytes'] / rec['stored_nodes']:7.2f} {rec['encode_cpu_s']:9.2f}  {phases}"
-            )
-        chk = run([sys.executable, "-c", _CHECK, str(store)])
-        bad = int(chk["out"].strip())
-        print(
-            f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU, {bad} shards flagged (unwritten ones)"
-        )
-        floor = codec_floor(store, a.shards)
-        models = sum(r["models"][1] - r["models"][0] for r in records)
-        stage_cpu = init["cpu_s"] + sum(j["cpu_s"] for j in jobs) + chk["cpu_s"]
-        stage_wall = init["wall_s"] + sum(j["wall_s"] for j in jobs) + chk["wall_s"]
-        nbytes = sum(r["stored_bytes"] for r in records)
-        nodes = sum(r["stored_nodes"] for r in records)
-        print(
-            f"\nstage (init + {len(jobs)} shard jobs + check, sequential): {stage_wall:.1f} s wall, {stage_cpu:.1f} s CPU for "
-            f"{models} models; codec floor {floor:.2f} s CPU (jobs' own encode CPU {sum(r['encode_cpu_s'] for r in records):.2f} s)"
-            f" -> CPU / floor = {stage_cpu / floor:.1f} (goal <= 1.5)"
-        )
-        print(
-            f"peak RSS per job: {max(j['rss_mb'] for j in jobs):.0f} MB (goal <= 1500); {nbytes / nodes:.2f} B/node (goal <= 5)"
-        )
-        # cold read of one model: the middle model of the first shard
-        i = records[0]["models"][0] + (records[0]["models"][1] - records[0]["models"][0]) // 2
-        drop_from_page_cache([store / o for o in records[0]["objects"]])
-        cold = run([sys.executable, "-c", _READ, str(store), str(i)])
-        warm = run([sys.executable, "-c", _READ, str(store), str(i)])
-        (c_read, c_imp), w_read = map(float, cold["out"].split()[:2]), float(warm["out"].split()[0])
-        print(
-            f"read model {i} (tri + hex) in a fresh process, zarr.open + 2 reads: cold {c_read:.3f} s, warm {w_read:.3f} s "
-            f"(goal cold <= 0.1 s; `import zarr` itself: {c_imp:.2f} s)"
-        )
-        try:
-            import tensorstore as ts
-            import zarr
+    # cold read of one model: the middle model of the first shard
+    i = records[0]["models"][0] + (records[0]["models"][1] - records[0]["models"][0]) // 2
+    drop_from_page_cache([store / o for o in records[0]["objects"]])
+    cold = run([sys.executable, "-c", _READ, str(store), str(i)])
+    warm = run([sys.executable, "-c", _READ, str(store), str(i)])
+    (c_read, c_imp), w_read = map(float, cold["out"].split()[:2]), float(warm["out"].split()[0])
+    print(
+        f"read model {i} (tri + hex) in a fresh process, zarr.open + 2 reads: cold {c_read:.3f} s, warm {w_read:.3f} s "
+        f"(goal cold <= 0.1 s; `import zarr` itself: {c_imp:.2f} s)"
+    )
+    try:
+        import tensorstore as ts
+        import zarr
 
-            z = zarr.open(str(store), mode="r")
-            same = all(
-                np.array_equal(
-                    ts.open({"driver": "zarr3", "kvstore": {"driver": "file", "path": str(store / arr)}})
-                    .result()[i]
-                    .read()
-                    .result(),
-                    z[arr][i],
-                )
-                for arr in S.POINT_ARRAYS
+        z = zarr.open(str(store), mode="r")
+        same = all(
+            np.array_equal(
+                ts.open({"driver": "zarr3", "kvstore": {"driver": "file", "path": str(store / arr)}})
+                .result()[i]
+                .read()
+                .result(),
+                z[arr][i],
             )
-            print(f"tensorstore reads model {i}: {'identical to zarr-python' if same else 'DIFFERENT'}")
-        except ImportError:
-            print("tensorstore not installed (pip install -e '.[test]')")
-        # extrapolation: the default run's shard size, 2 cores. From CPU time (what a job takes on a quiet
-        # machine: single-threaded, its wall is its CPU) and from this run's wall time (inflated by the load)
+            for arr in S.POINT_ARRAYS
+        )
+        print(f"tensorstore reads model {i}: {'identical to zarr-python' if same else 'DIFFERENT'}")
+    except ImportError:
+        print("tensorstore not installed (pip install -e '.[test]')")
+    if not a.all:
+        # extrapolation to the default run's shard size on 2 cores, from CPU time (on a quiet machine a
+        # single-threaded job's wall is its CPU) and from this run's wall time (inflated by any load)
         sm = cfg["store"]["shard_models"]
         n_sh = S.n_shards(total, sm)
         rounds = math.ceil(n_sh / 2)
-        start_up = float(np.median([r["load_s"] for r in records]))
+        start = float(np.median([r["load_s"] for r in records]))
         load = os.getloadavg()[0]
         for basis, spent, check in (("CPU", "cpu_s", chk["cpu_s"]), ("wall", "wall_s", chk["wall_s"])):
-            per_model = (sum(j[spent] for j in jobs) - start_up * len(jobs)) / models
-            job_s = start_up + sm * per_model
+            per_model = (sum(j[spent] for j in jobs) - start * len(jobs)) / models
+            job_s = start + sm * per_model
             check_s = check * n_sh * sm / models  # hashing scales with the bytes
             est = init["wall_s"] + rounds * job_s + check_s
             print(
@@ -358,8 +420,7 @@ def main(argv=None) -> int:
                 f"models in {n_sh} shards of {sm} on 2 cores: {per_model * 1e3:.1f} ms/model -> {job_s:.0f} s per job, "
                 f"{rounds} rounds, check ~{check_s:.0f} s: store stage ~{est / 60:.1f} min (goal <= 5 min)"
             )
-        print(f"store size ~{nbytes / nodes * total * (n_tri + n_hex) / 1e9:.1f} GB")
-    return 0
+    print(f"store size for the whole grid: ~{nbytes / nodes * total * (n_tri + n_hex) / 1e9:.1f} GB")
 
 
 if __name__ == "__main__":

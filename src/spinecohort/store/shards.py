@@ -219,7 +219,8 @@ def process_shard(
     its 2^-10 mm rounding.
 
     ``batch`` models per step (rounded up to whole store chunks by the caller); ``measure_kw``: vertical,
-    assumed_age, c7_proxy.  Returns (quality table, params table, tri-vs-hex table, timing in s).
+    assumed_age, c7_proxy.  Returns (quality table, params table, tri-vs-hex table, timing: wall ``<phase>_s``
+    and CPU ``<phase>_cpu_s`` in s of the phases sample, quality (check + repair + Table 3), measure, write).
     """
     w = _check_weights(weights, min(ssm.n_modes, hex_ssm.fields.shape[0]), "SSM")
     ids = np.asarray(model_ids, dtype=np.int64)
@@ -228,7 +229,8 @@ def process_shard(
     m = w.shape[1]
     df_tri = ssm.deformation_fields(m).reshape(m, -1)
     df_hex = hex_ssm.fields[:m].reshape(m, -1)
-    timing = dict.fromkeys(("sample_s", "quality_s", "measure_s", "write_s"), 0.0)
+    phases = ("sample", "quality", "measure", "write")
+    timing = {f"{k}{unit}": 0.0 for unit in ("_s", "_cpu_s") for k in phases}  # wall and CPU per phase
     quality, p_tri, p_hex = [], [], []
     # two float64 batch buffers reused batch after batch: fresh ~100 MB arrays per batch cost more in page
     # faults than the products that fill them
@@ -236,7 +238,7 @@ def process_shard(
     h_buf = np.empty((min(batch, len(w)), *hex_ssm.mean.shape))
     for i in range(0, len(w), batch):
         wb, ib = w[i : i + batch], ids[i : i + batch]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         t64, h64 = t_buf[: len(wb)], h_buf[: len(wb)]
         np.matmul(wb, df_tri, out=t64.reshape(len(wb), -1))
         t64 += ssm.mean
@@ -244,22 +246,23 @@ def process_shard(
         h64 += hex_ssm.mean
         if hex_ssm.contact is not None:
             gaps, offsets = resolve_contact(t64, h64, hex_ssm.contact)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds
         q, table3 = shard_quality(h64, template, hex_ssm, wb, ib, repair, log)
         if hex_ssm.contact is not None:
             for key, v in distraction_summary(gaps, offsets).items():
                 q[key] = v
         quality.append(pd.concat([q, table3], axis=1))
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         p_tri.append(measure(t64, tri_landmarks, **measure_kw))
         p_hex.append(measure(h64, hex_lm, **measure_kw))
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         if writer is not None:
             writer.add(t64, h64)
-        t4 = time.perf_counter()
-        for key, dt in zip(timing, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
-            timing[key] += dt
+        t4, c4 = time.perf_counter(), time.process_time()
+        for k, dt, dc in zip(phases, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), (c1 - c0, c2 - c1, c3 - c2, c4 - c3)):
+            timing[f"{k}_s"] += dt
+            timing[f"{k}_cpu_s"] += dc
     p_tri = pd.concat(p_tri, ignore_index=True)
     p_hex = pd.concat(p_hex, ignore_index=True)
     return pd.concat(quality, ignore_index=True), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
@@ -382,7 +385,7 @@ def run_shard_job(
 
     # the rule has threads: 1 (Snakemake sets OMP/OpenBLAS threads to it; blosc has its own pool)
     blosc.set_nthreads(1)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     store = Path(store)
     ids, weights = shard_models_of(store, shard)  # the store's own grid, not the config's
     template = HexTemplate.load(inputs["template"])
@@ -390,7 +393,7 @@ def run_shard_job(
     ssm, hex_ssm = SSM.load(inputs["ssm"]), HexSSM.load(inputs["hex_ssm"])
     writer = ShardWriter(store, shard)
     batch = -(-DEFAULT_CHUNK // writer.chunk) * writer.chunk  # whole store chunks per batch
-    t_load = time.perf_counter()
+    t_load, c_load = time.perf_counter(), time.process_time()
     try:
         quality, params, diff, timing = process_shard(
             ssm,
@@ -417,7 +420,7 @@ def run_shard_job(
     except BaseException:
         writer.abort()
         raise
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     record = writer.close()
     quality.to_csv(outputs["quality"], index=False, float_format="%.6g")
     params.to_csv(outputs["params"], index=False, float_format="%.6f")
@@ -426,7 +429,9 @@ def run_shard_job(
     record.update(
         timing,
         load_s=t_load - t0,
+        load_cpu_s=c_load - c0,
         close_s=time.perf_counter() - t1,
+        close_cpu_s=time.process_time() - c1,  # index, renames, weights, sidecar and the three CSV files
         encode_cpu_s=writer.encode_cpu_s,
         stored_bytes=writer.stored_bytes,
         stored_nodes=len(ids) * sum(writer.n_nodes.values()),
