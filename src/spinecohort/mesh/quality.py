@@ -825,6 +825,10 @@ def model_quality(points: np.ndarray, hexes: np.ndarray, part_of_element: np.nda
     code = rank[inverse.ravel()]  # per element: its label's index in order of first appearance
     labels = uniq[appearance].tolist()
     x = np.asarray(points)
+    if x.ndim != 3 or x.shape[-1] != 3:
+        raise ValueError(f"points must have shape (B, n_nodes, 3), got {x.shape}")
+    if conn.size and (conn.min() < 0 or conn.max() >= x.shape[1]):  # the kernel does not bounds-check
+        raise ValueError(f"hexes reference nodes outside 0..{x.shape[1] - 1}")
     if x.dtype != np.float64:
         x = x.astype(np.float64)
     counts, minima = model_quality_nb(
