@@ -1,23 +1,29 @@
 """Benchmark of the virtual-cohort store stage: init -> shard jobs -> check_store, against the codec floor.
 
-    python benchmarks/bench_store.py [--results results] [--shard-models 343] [--shards 0 24 48]
-                                     [--explore] [--explore-models 49]
+    python benchmarks/bench_store.py [--results results] [--out DIR] [--shard-models 343] [--shards 0 24 48]
+                                     [--all] [--jobs 2]
+    python benchmarks/bench_store.py --explore [--explore-sample spread|corner]
 
 Needs the inputs of the shard jobs of a default-config run (``snakemake -j2 results/template/hex_ssm.npz``:
-ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store in a temporary folder with the
-default grid (7^5 = 16,807 models) cut into shards of ``--shard-models``, runs the listed shards each as its
-own process (the ``sample_shard`` job's code, ``store.shards.run_shard_job``), then ``check_store``, and prints:
+ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a temporary folder under
+``--out``, removed at the end) with the default grid (7^5 = 16,807 models) cut into shards of
+``--shard-models``, runs the listed shards (``--all``: every shard, i.e. the whole store stage) each as its
+own process with Snakemake's one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
+``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
-* per job: wall, CPU (user + system, from ``wait4``), peak RSS, models/s, stored bytes per node;
-* the **compression floor**: CPU time to encode the same stored values with the same codec chain
-  (transpose + blosc bitshuffle zstd) and nothing else, measured in this run, and the stage's CPU / floor;
+* per job: wall, CPU (user + system, from ``wait4``), peak RSS, bytes per node, encode CPU, CPU per phase;
+* bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
+  chain (transpose + blosc) and nothing else, measured in this run; the store stage's CPU / floor and the
+  write phase's CPU / floor;
+* wall per shard job, peak RSS, and with ``--all`` the measured wall of the whole stage;
 * a cold read of one model's tri + hex coordinates (the shard files dropped from the page cache with
   ``posix_fadvise(DONTNEED)``, fresh process), and the same model read by tensorstore (a second Zarr v3
   implementation) compared with zarr-python's;
-* the extrapolation to the default 16,807 models in shards of ``store.shard_models`` on 2 cores.
+* without ``--all``: the extrapolation to the default 16,807 models in shards of ``store.shard_models``.
 
-``--explore``: bytes per node and encode speed of the alternative layouts and codecs (core Zarr v3 codecs
-only) on the first ``--explore-models`` models of the first listed shard (docs/store.md).
+``--explore`` (instead of the stage): bytes per node and encode speed of the alternative layouts and codecs
+(core Zarr v3 codecs only) on a sample of real models (``EXPLORE_SAMPLES``), and how far each coordinate
+rounding moves the measured parameters (docs/store.md).
 """
 
 from __future__ import annotations
@@ -70,39 +76,68 @@ ONE_THREAD = {
 }
 
 
-def run(cmd: list[str]) -> dict:
-    """Run a process as a threads: 1 job; its wall time, CPU time (user + system) and peak RSS from wait4."""
-    t0 = time.perf_counter()
+def run_jobs(cmds: list[list[str]], jobs: int = 1, logdir: Path | None = None) -> list[dict]:
+    """Run processes as threads: 1 jobs, at most ``jobs`` at a time (Snakemake -j``jobs``); per process its
+    wall time, CPU time (user + system) and peak RSS from wait4, and its stdout."""
     env = {**os.environ, **ONE_THREAD}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    _, status, ru = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    out, err = proc.stdout.read(), proc.stderr.read()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{cmd[:3]} failed ({proc.returncode}): {err[-2000:]}")
-    return {"wall_s": wall, "cpu_s": ru.ru_utime + ru.ru_stime, "rss_mb": ru.ru_maxrss / 1024, "out": out}
+    logdir = Path(logdir or tempfile.mkdtemp(prefix="bench-store-logs-"))
+    out, running, todo = [None] * len(cmds), {}, list(enumerate(cmds))
+    while todo or running:
+        while todo and len(running) < jobs:
+            k, cmd = todo.pop(0)
+            fo, fe = open(logdir / f"{k}.out", "w"), open(logdir / f"{k}.err", "w")
+            proc = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True, env=env)
+            running[proc.pid] = (k, time.perf_counter(), fo, fe)
+        pid, status, ru = os.wait4(-1, 0)
+        if pid not in running:
+            continue
+        k, t0, fo, fe = running.pop(pid)
+        fo.close()
+        fe.close()
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            raise RuntimeError(f"{cmds[k][:3]} failed ({code}): {(logdir / f'{k}.err').read_text()[-2000:]}")
+        out[k] = {
+            "wall_s": time.perf_counter() - t0,
+            "cpu_s": ru.ru_utime + ru.ru_stime,
+            "rss_mb": ru.ru_maxrss / 1024,
+            "out": (logdir / f"{k}.out").read_text(),
+        }
+    return out
+
+
+def run(cmd: list[str]) -> dict:
+    """One process as a threads: 1 job (see :func:`run_jobs`)."""
+    return run_jobs([cmd])[0]
 
 
 def codec_floor(path: Path, shards: list[int]) -> float:
-    """CPU s to encode the stored values of ``shards`` with the store's codec chain alone."""
-    import zarr
+    """CPU s to encode the stored values of ``shards`` with the store's codec chain alone (transpose to the
+    stored order + blosc), one inner chunk at a time: each chunk is read from its shard object and decoded
+    outside the timing, then encoded again from model-major order inside it."""
     from numcodecs import blosc
 
     blosc.set_nthreads(1)  # as in the shard job
-    root = zarr.open_group(str(path), mode="r")
-    meta = dict(root.attrs)
-    codec = S._blosc_codecs(root["tri/points"].metadata.codecs[0].codecs[-1].clevel)[1]
+    meta = json.loads((path / "zarr.json").read_text())["attributes"]
     cm = meta["chunk_models"]
+    slots = meta["shard_models"] // cm
     cpu = 0.0
     for s in shards:
-        a, b = S.shard_range(s, meta["shard_models"], meta["n_models"])
-        for name in S.POINT_ARRAYS:
-            x = root[name][a:b]  # decoded once, outside the timing
-            t0 = time.process_time()
-            for i in range(0, len(x), cm):
-                codec.encode(np.ascontiguousarray(x[i : i + cm].transpose(S.CHUNK_ORDER)))
-            cpu += time.process_time() - t0
+        for name, obj in zip(S.POINT_ARRAYS, S._shard_objects(path, s)[:2]):
+            arr = json.loads((path / name / "zarr.json").read_text())
+            n_nodes = arr["shape"][1]
+            clevel = arr["codecs"][0]["configuration"]["codecs"][-1]["configuration"]["clevel"]
+            codec = S._blosc_codecs(clevel)[1]
+            data = obj.read_bytes()
+            index = np.frombuffer(data[-(16 * slots + 4) : -4], dtype="<u8").reshape(slots, 2)
+            for off, nbytes in index:
+                if off == 2**64 - 1:
+                    continue
+                stored = np.frombuffer(codec.decode(data[off : off + nbytes]), np.float32).reshape(3, n_nodes, cm)
+                models = np.ascontiguousarray(stored.transpose(S.CHUNK_ORDER))  # (cm, nodes, xyz), as written
+                t0 = time.process_time()
+                codec.encode(np.ascontiguousarray(models.transpose(S.CHUNK_ORDER)))
+                cpu += time.process_time() - t0
     return cpu
 
 
@@ -116,73 +151,139 @@ def drop_from_page_cache(files) -> None:
             os.close(fd)
 
 
-def explore(results: Layout, shard: int, shard_models: int, n: int) -> None:
-    """B/node and encode MB/s of alternative core-codec layouts on n models of ``shard``."""
-    from numcodecs import Blosc, Zstd
+EXPLORE_SAMPLES = {
+    # shard 0 of 343 models (w1 = w2 = -3, the most deformed corner), its first 49 models
+    "corner": [np.arange(0, 49)],
+    # one 49-model batch (w3 = 0, w4 = -3..3, w5 = -3..3) from the middle of each default 2,401-model shard
+    "spread": [np.arange(s * 2401 + 3 * 343 + 3 * 49, s * 2401 + 3 * 343 + 4 * 49) for s in range(7)],
+}
+_BIT, _BYTE = 2, 1  # numcodecs Blosc.BITSHUFFLE, Blosc.SHUFFLE
+#: (quantum exponent or None (unrounded) or "um" (int32 um), models per chunk, stored order, blosc clevel
+#: (0: zstd 3 alone), shuffle, blosc block KiB); stored order: outermost axis first of (m)odel, (n)ode, (c)oordinate
+EXPLORE_VARIANTS = [
+    (10, 1, (0, 2, 1), 1, _BIT, 1024),
+    (10, 7, (2, 0, 1), 1, _BIT, 1024),
+    (10, 7, (2, 1, 0), 1, _BIT, 1024),  # format 2
+    (10, 7, (2, 1, 0), 1, _BYTE, 1024),
+    (10, 7, (2, 1, 0), 0, 0, 0),
+    (10, 7, (1, 2, 0), 2, _BIT, 256),
+    (10, 7, (2, 1, 0), 1, _BIT, 224),
+    (10, 7, (2, 1, 0), 2, _BIT, 128),
+    (10, 7, (2, 1, 0), 2, _BIT, 192),
+    (10, 7, (2, 1, 0), 2, _BIT, 224),  # format 3 (chosen)
+    (10, 7, (2, 1, 0), 2, _BIT, 256),
+    (10, 7, (2, 1, 0), 2, _BIT, 1024),
+    (10, 7, (2, 1, 0), 2, _BIT, 4096),
+    (10, 7, (2, 1, 0), 3, _BIT, 224),
+    (10, 7, (2, 1, 0), 4, _BIT, 224),
+    (10, 49, (2, 1, 0), 1, _BIT, 224),
+    (10, 49, (2, 1, 0), 2, _BIT, 224),
+    (9, 7, (2, 1, 0), 1, _BIT, 1024),
+    (9, 7, (2, 1, 0), 2, _BIT, 224),
+    (None, 7, (2, 1, 0), 2, _BIT, 224),
+    ("um", 7, (2, 1, 0), 2, _BIT, 224),
+]
 
+
+def _explore_values(x64: np.ndarray, q) -> np.ndarray:
+    if q is None:
+        return x64.astype(np.float32)
+    if q == "um":
+        return np.rint(x64 * 1000).astype(np.int32)
+    return (np.rint(x64 * 2.0**q) / 2.0**q).astype(np.float32)
+
+
+def explore(results: Layout, sample: str, measure_cfg: dict) -> None:
+    """B/node and encode MB/s of alternative core-codec layouts on ``sample`` (EXPLORE_SAMPLES), and how far
+    each rounding moves the measured parameters (the issue's tolerance: 1e-3 deg, 1e-3 mm)."""
+    import pandas as pd
+    from numcodecs import Blosc, Zstd, blosc
+
+    from spinecohort.cohort.loading import load_cohort_npz
+    from spinecohort.measure.spinopelvic import UNITS, measure
+    from spinecohort.mesh.contact import resolve_contact
     from spinecohort.mesh.hex_ssm import HexSSM
     from spinecohort.ssm.model import SSM
-    from spinecohort.store.shards import sample_points
 
-    a, _ = S.shard_range(shard, shard_models)
-    w = S.weights_of(np.arange(a, a + n))
-    tri, hexp = sample_points(SSM.load(results.ssm), HexSSM.load(results.hex_ssm), w)
-    x64 = [tri.astype(np.float64), hexp.astype(np.float64)]
-    reps = {
-        "float32 mm / 2^-10": [S.quantize_mm(x) for x in x64],
-        "float32 mm / 2^-9": [(np.rint(x * 512) / 512).astype(np.float32) for x in x64],
-        "float32 mm, unrounded": [x.astype(np.float32) for x in x64],
-        "int32 um (needs CF decoding)": [np.rint(x * 1000).astype(np.int32) for x in x64],
-    }
-    bit, byte = Blosc.BITSHUFFLE, Blosc.SHUFFLE
-    variants = [
-        ("float32 mm / 2^-10", 1, (0, 2, 1), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 1, (0, 2, 1), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 0, 1), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 2, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 1, byte, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Blosc("zstd", 1, bit, 0)),
-        ("float32 mm / 2^-10", 7, (2, 1, 0), Zstd(3)),
-        ("float32 mm / 2^-10", 49, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-10", 49, (2, 1, 0), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm / 2^-9", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("float32 mm, unrounded", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-        ("int32 um (needs CF decoding)", 1, (0, 2, 1), Blosc("zstd", 3, bit, S.BLOSC_BLOCK_BYTES)),
-        ("int32 um (needs CF decoding)", 7, (2, 1, 0), Blosc("zstd", 1, bit, S.BLOSC_BLOCK_BYTES)),
-    ]
-    print(f"\nExplore: {n} models of shard {shard} ({tri.shape[1]} tri + {hexp.shape[1]} hex nodes), core codecs only")
-    print(f"{'values':<30s} {'models/chunk':>12s} {'stored order':>14s} {'codec':<34s} {'B/node':>7s} {'enc MB/s':>9s}")
-    for rep, per, order, codec in variants:
-        nbytes = raw = 0
-        cpu = 0.0
-        for q in reps[rep]:
-            for i in range(0, len(q), per):
-                c = np.ascontiguousarray(q[i : i + per].transpose(order))
-                t0 = time.process_time()
-                nbytes += len(codec.encode(c))
-                cpu += time.process_time() - t0
-                raw += c.nbytes
-        nodes = n * (tri.shape[1] + hexp.shape[1])
-        axes = "".join("mnc"[k] for k in order)  # m model, n node, c coordinate; outermost first
-        cfg = codec.get_config()
-        name = (
-            f"blosc {['no', 'byte', 'bit'][cfg['shuffle']]}shuffle zstd {cfg['clevel']} bs={cfg['blocksize'] >> 10}k"
-            if cfg["id"] == "blosc"
-            else f"zstd {cfg['level']}"
+    blosc.set_nthreads(1)
+    ssm, hex_ssm = SSM.load(results.ssm), HexSSM.load(results.hex_ssm)
+    landmarks = load_cohort_npz(results.cohort).landmarks
+    kw = dict(
+        vertical=measure_cfg["vertical_axis"], assumed_age=measure_cfg["assumed_age"], c7_proxy=measure_cfg["c7_proxy"]
+    )
+    df_t = ssm.deformation_fields(S.DEFAULT_N_MODES).reshape(S.DEFAULT_N_MODES, -1)
+    df_h = hex_ssm.fields[: S.DEFAULT_N_MODES].reshape(S.DEFAULT_N_MODES, -1)
+    acc = {v: np.zeros(3) for v in EXPLORE_VARIANTS}  # tri bytes, hex bytes, encode CPU s
+    raw = dict.fromkeys(EXPLORE_VARIANTS, 0)
+    n_tri = n_hex = 0
+    moved = {}  # quantum -> (max |d angle| deg, max |d length| mm, worst angle, worst length)
+    for ids in EXPLORE_SAMPLES[sample]:
+        w = S.weights_of(ids)
+        t = (ssm.mean.ravel() + w @ df_t).reshape(len(w), *ssm.mean.shape)  # float64, as in the shard job
+        h = (hex_ssm.mean.ravel() + w @ df_h).reshape(len(w), *hex_ssm.mean.shape)
+        if hex_ssm.contact is not None:
+            resolve_contact(t, h, hex_ssm.contact)
+        n_tri += t.shape[0] * t.shape[1]
+        n_hex += h.shape[0] * h.shape[1]
+        p64 = measure(t, landmarks, **kw)
+        num = [c for c in p64.columns if pd.api.types.is_float_dtype(p64[c])]
+        for q in (10, 9):
+            d = (measure(_explore_values(t, q), landmarks, **kw)[num] - p64[num]).abs().max()
+            deg = d[[c for c in num if UNITS.get(c) == "deg"]]
+            mm = d[[c for c in num if UNITS.get(c) == "mm"]]
+            old = moved.get(q, (0.0, 0.0, "", ""))
+            moved[q] = (
+                max(old[0], deg.max()),
+                max(old[1], mm.max()),
+                deg.idxmax() if deg.max() > old[0] else old[2],
+                mm.idxmax() if mm.max() > old[1] else old[3],
+            )
+        for v in EXPLORE_VARIANTS:
+            q, per, order, clevel, shuffle, block = v
+            codec = Zstd(3) if clevel == 0 else Blosc("zstd", clevel, shuffle, block << 10)
+            for k, x in enumerate((t, h)):
+                vals = _explore_values(x, q)
+                for i in range(0, len(vals), per):
+                    c = np.ascontiguousarray(vals[i : i + per].transpose(order))
+                    t0 = time.process_time()
+                    acc[v][k] += len(codec.encode(c))
+                    acc[v][2] += time.process_time() - t0
+                    raw[v] += c.nbytes
+    n = sum(map(len, EXPLORE_SAMPLES[sample]))
+    print(f"\nExplore ({sample}: {n} models, {n_tri // n} tri + {n_hex // n} hex nodes each), core codecs only")
+    print(
+        f"{'values':<22s} {'models/chunk':>12s} {'order':>6s} {'codec':<36s} {'B/node':>7s} {'tri':>6s} {'hex':>6s} {'enc MB/s':>9s}"
+    )
+    for v, (bt, bh, cpu) in acc.items():
+        q, per, order, clevel, shuffle, block = v
+        vals = {None: "float32 mm, unrounded", "um": "int32 um"}.get(q, f"float32 mm / 2^-{q}")
+        codec = (
+            "zstd 3, no shuffle"
+            if clevel == 0
+            else f"blosc {['no', 'byte', 'bit'][shuffle]}shuffle clevel {clevel}, {block} KiB"
         )
-        print(f"{rep:<30s} {per:>12d} {axes:>14s} {name:<34s} {nbytes / nodes:7.2f} {raw / max(cpu, 1e-9) / 1e6:9.0f}")
+        axes = "".join("mnc"[k] for k in order)
+        print(
+            f"{vals:<22s} {per:>12d} {axes:>6s} {codec:<36s} {(bt + bh) / (n_tri + n_hex):7.3f} {bt / n_tri:6.3f} "
+            f"{bh / n_hex:6.3f} {raw[v] / max(cpu, 1e-9) / 1e6:9.0f}"
+        )
+    for q, (deg, mm, wdeg, wmm) in moved.items():
+        print(
+            f"2^-{q} mm rounding of the tri model moves the parameters by <= {deg:.2e} deg ({wdeg}), {mm:.2e} mm ({wmm})"
+        )
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default="results", help="results folder of a default-config run (inputs)")
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
+    ap.add_argument("--out", help="folder for the benchmark's store and shard files (default: a temporary one)")
     ap.add_argument("--shard-models", type=int, default=343, help="models per shard in this benchmark")
     ap.add_argument("--shards", type=int, nargs="+", default=[0, 24, 48])
+    ap.add_argument("--all", action="store_true", help="every shard of the grid: the whole store stage")
+    ap.add_argument("--jobs", type=int, default=1, help="shard jobs at a time (2 = snakemake -j2 on 2 cores)")
     ap.add_argument("--explore", action="store_true")
-    ap.add_argument("--explore-models", type=int, default=49)
+    ap.add_argument("--explore-sample", choices=sorted(EXPLORE_SAMPLES), default="spread")
     a = ap.parse_args(argv)
     cfg = yaml.safe_load(Path(a.config).read_text())
     L = Layout(a.results)
@@ -190,101 +291,136 @@ def main(argv=None) -> int:
     for k, v in inputs.items():
         if not Path(v).is_file():
             raise SystemExit(f"{v} missing: run `snakemake -j2 {L.hex_ssm}` on the default config first ({k})")
+    if a.explore:
+        explore(L, a.explore_sample, cfg["measure"])
+        return 0
+    if a.out:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="bench-store-", dir=a.out) as tmp:
+        stage(Path(tmp), cfg, inputs, a)
+    return 0
+
+
+def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
+    """init -> shard jobs -> check_store in ``tmp``, then the floor, the cold read and the summary lines."""
     grid = cfg["grid"]
     total = S.n_models(grid["n_modes"], grid["levels"])
-    with tempfile.TemporaryDirectory(prefix="bench-store-") as tmp:
-        store = Path(tmp) / "cohort.zarr"
-        t0, c0 = time.perf_counter(), time.process_time()
-        with np.load(L.ssm) as z:
-            n_tri = z["mean"].shape[0]
-        with np.load(L.hex_ssm) as z:
-            n_hex = z["mean"].shape[0]
-        S.create_store(
-            store, n_tri, n_hex, grid["n_modes"], grid["levels"], a.shard_models, {}, cfg["store"]["encoding"]
+    shards = list(range(S.n_shards(total, a.shard_models))) if a.all else a.shards
+    store = tmp / "cohort.zarr"
+    t_stage = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
+    with np.load(inputs["ssm"]) as z:
+        n_tri = z["mean"].shape[0]
+    with np.load(inputs["hex_ssm"]) as z:
+        n_hex = z["mean"].shape[0]
+    S.create_store(store, n_tri, n_hex, grid["n_modes"], grid["levels"], a.shard_models, {}, cfg["store"]["encoding"])
+    init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+    print(
+        f"store: {total} models x ({n_tri} tri + {n_hex} hex nodes), shards of {a.shard_models}, "
+        f"format {S.STORE_FORMAT}; init {init['wall_s']:.2f} s; {len(shards)} shard jobs, {a.jobs} at a time"
+    )
+    cmds, outs = [], {}
+    for s in shards:
+        outs[s] = {k: str(tmp / f"{s:05d}.{k}") for k in ("quality", "params", "tri_vs_hex", "record")}
+        arg = dict(
+            store=str(store), shard=s, inputs=inputs, outputs=outs[s], settings=cfg["store"], measure=cfg["measure"]
         )
-        init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+        cmds.append([sys.executable, "-c", _JOB, json.dumps(arg)])
+    t_jobs = time.perf_counter()
+    jobs = run_jobs(cmds, a.jobs, tmp)
+    jobs_wall = time.perf_counter() - t_jobs
+    records = [json.loads(Path(outs[s]["record"]).read_text()) for s in shards]
+    phases = ("load", "sample", "quality", "measure", "write", "close")
+    print(
+        f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'RSS MB':>7s} {'B/node':>7s} {'enc CPU s':>9s}  "
+        f"CPU s per phase ({', '.join(phases)}; quality = check + repair + Table 3)"
+    )
+    for s, r, rec in zip(shards, jobs, records):
+        n = rec["models"][1] - rec["models"][0]
+        cpu = " ".join(f"{rec[f'{k}_cpu_s']:5.1f}" for k in phases)
         print(
-            f"store: {total} models x ({n_tri} tri + {n_hex} hex nodes), shards of {a.shard_models}; init {init['wall_s']:.2f} s"
+            f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['rss_mb']:7.0f} "
+            f"{rec['stored_bytes'] / rec['stored_nodes']:7.3f} {rec['encode_cpu_s']:9.2f}  {cpu}"
         )
+    chk = run([sys.executable, "-c", _CHECK, str(store)])
+    stage_wall = time.perf_counter() - t_stage
+    bad = int(chk["out"].strip())
+    print(f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU, {bad} shards flagged (unwritten ones)")
+    floor = codec_floor(store, shards)
+    models = sum(r["models"][1] - r["models"][0] for r in records)
+    stage_cpu = init["cpu_s"] + sum(j["cpu_s"] for j in jobs) + chk["cpu_s"]
+    nbytes = sum(r["stored_bytes"] for r in records)
+    nodes = sum(r["stored_nodes"] for r in records)
+    enc = sum(r["encode_cpu_s"] for r in records)
+    write_cpu = sum(r["write_cpu_s"] for r in records)
+    print(f"\n== {models} models in {len(shards)} shards of {a.shard_models}, {a.jobs} job(s) at a time ==")
+    print(f"bytes per node: {nbytes / nodes:.3f} B/node (goal <= 5); {nbytes / 1e9:.2f} GB")
+    print(
+        f"compression floor (the stored values through transpose + blosc alone, this run): {floor:.2f} s CPU "
+        f"(the jobs' own encode CPU: {enc:.2f} s)"
+    )
+    print(
+        f"store-stage CPU (init + jobs + check): {stage_cpu:.1f} s -> CPU / floor = {stage_cpu / floor:.2f} "
+        f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, sha256, file writes): "
+        f"{write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
+    )
+    per_phase = {k: sum(r[f"{k}_cpu_s"] for r in records) for k in phases}
+    start_up = sum(j["cpu_s"] for j in jobs) - sum(per_phase.values())
+    print(
+        "CPU by phase, all jobs: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in per_phase.items())
+        + f", interpreter start + imports {start_up:.1f} s, check_store {chk['cpu_s']:.1f} s"
+    )
+    walls = [j["wall_s"] for j in jobs]
+    print(
+        f"wall per shard job: {min(walls):.1f}-{max(walls):.1f} s (median {np.median(walls):.1f}); peak RSS per job "
+        f"{max(j['rss_mb'] for j in jobs):.0f} MB (goal <= 1500); jobs {jobs_wall:.1f} s wall"
+    )
+    if a.all:
         print(
-            f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'RSS MB':>7s} {'models/s':>8s} {'B/node':>7s} {'enc CPU s':>9s}  phases (s)"
+            f"whole store stage (init -> {len(shards)} shards, {a.jobs} at a time -> check_store), measured: "
+            f"{stage_wall:.1f} s = {stage_wall / 60:.2f} min wall (goal <= 5 min), load average now "
+            f"{os.getloadavg()[0]:.1f}"
         )
-        jobs, records = [], []
-        for s in a.shards:
-            outs = {k: str(Path(tmp) / f"{s:05d}.{k}") for k in ("quality", "params", "tri_vs_hex", "record")}
-            arg = dict(
-                store=str(store), shard=s, inputs=inputs, outputs=outs, settings=cfg["store"], measure=cfg["measure"]
-            )
-            r = run([sys.executable, "-c", _JOB, json.dumps(arg)])
-            rec = json.loads(Path(outs["record"]).read_text())
-            jobs.append(r)
-            records.append(rec)
-            n = rec["models"][1] - rec["models"][0]
-            phases = {
-                k[:-2]: round(rec[k], 1)
-                for k in ("load_s", "sample_s", "check_repair_s", "table3_s", "measure_s", "write_s", "close_s")
-            }
-            print(
-                f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['rss_mb']:7.0f} {n / r['wall_s']:8.1f} "
-                f"{rec['stored_bytes'] / rec['stored_nodes']:7.2f} {rec['encode_cpu_s']:9.2f}  {phases}"
-            )
-        chk = run([sys.executable, "-c", _CHECK, str(store)])
-        bad = int(chk["out"].strip())
-        print(
-            f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU, {bad} shards flagged (unwritten ones)"
-        )
-        floor = codec_floor(store, a.shards)
-        models = sum(r["models"][1] - r["models"][0] for r in records)
-        stage_cpu = init["cpu_s"] + sum(j["cpu_s"] for j in jobs) + chk["cpu_s"]
-        stage_wall = init["wall_s"] + sum(j["wall_s"] for j in jobs) + chk["wall_s"]
-        nbytes = sum(r["stored_bytes"] for r in records)
-        nodes = sum(r["stored_nodes"] for r in records)
-        print(
-            f"\nstage (init + {len(jobs)} shard jobs + check, sequential): {stage_wall:.1f} s wall, {stage_cpu:.1f} s CPU for "
-            f"{models} models; codec floor {floor:.2f} s CPU (jobs' own encode CPU {sum(r['encode_cpu_s'] for r in records):.2f} s)"
-            f" -> CPU / floor = {stage_cpu / floor:.1f} (goal <= 1.5)"
-        )
-        print(
-            f"peak RSS per job: {max(j['rss_mb'] for j in jobs):.0f} MB (goal <= 1500); {nbytes / nodes:.2f} B/node (goal <= 5)"
-        )
-        # cold read of one model: the middle model of the first shard
-        i = records[0]["models"][0] + (records[0]["models"][1] - records[0]["models"][0]) // 2
-        drop_from_page_cache([store / o for o in records[0]["objects"]])
-        cold = run([sys.executable, "-c", _READ, str(store), str(i)])
-        warm = run([sys.executable, "-c", _READ, str(store), str(i)])
-        (c_read, c_imp), w_read = map(float, cold["out"].split()[:2]), float(warm["out"].split()[0])
-        print(
-            f"read model {i} (tri + hex) in a fresh process, zarr.open + 2 reads: cold {c_read:.3f} s, warm {w_read:.3f} s "
-            f"(goal cold <= 0.1 s; `import zarr` itself: {c_imp:.2f} s)"
-        )
-        try:
-            import tensorstore as ts
-            import zarr
+    # cold read of one model: the middle model of the first shard
+    i = records[0]["models"][0] + (records[0]["models"][1] - records[0]["models"][0]) // 2
+    drop_from_page_cache([store / o for o in records[0]["objects"]])
+    cold = run([sys.executable, "-c", _READ, str(store), str(i)])
+    warm = run([sys.executable, "-c", _READ, str(store), str(i)])
+    (c_read, c_imp), w_read = map(float, cold["out"].split()[:2]), float(warm["out"].split()[0])
+    print(
+        f"read model {i} (tri + hex) in a fresh process, zarr.open + 2 reads: cold {c_read:.3f} s, warm {w_read:.3f} s "
+        f"(goal cold <= 0.1 s; `import zarr` itself: {c_imp:.2f} s)"
+    )
+    try:
+        import tensorstore as ts
+        import zarr
 
-            z = zarr.open(str(store), mode="r")
-            same = all(
-                np.array_equal(
-                    ts.open({"driver": "zarr3", "kvstore": {"driver": "file", "path": str(store / arr)}})
-                    .result()[i]
-                    .read()
-                    .result(),
-                    z[arr][i],
-                )
-                for arr in S.POINT_ARRAYS
+        z = zarr.open(str(store), mode="r")
+        same = all(
+            np.array_equal(
+                ts.open({"driver": "zarr3", "kvstore": {"driver": "file", "path": str(store / arr)}})
+                .result()[i]
+                .read()
+                .result(),
+                z[arr][i],
             )
-            print(f"tensorstore reads model {i}: {'identical to zarr-python' if same else 'DIFFERENT'}")
-        except ImportError:
-            print("tensorstore not installed (pip install -e '.[test]')")
-        # extrapolation: the default run's shard size, 2 cores. From CPU time (what a job takes on a quiet
-        # machine: single-threaded, its wall is its CPU) and from this run's wall time (inflated by the load)
+            for arr in S.POINT_ARRAYS
+        )
+        print(f"tensorstore reads model {i}: {'identical to zarr-python' if same else 'DIFFERENT'}")
+    except ImportError:
+        print("tensorstore not installed (pip install -e '.[test]')")
+    if not a.all:
+        # extrapolation to the default run's shard size on 2 cores, from CPU time (on a quiet machine a
+        # single-threaded job's wall is its CPU) and from this run's wall time (inflated by any load)
         sm = cfg["store"]["shard_models"]
         n_sh = S.n_shards(total, sm)
         rounds = math.ceil(n_sh / 2)
-        start_up = float(np.median([r["load_s"] for r in records]))
+        start = float(np.median([r["load_s"] for r in records]))
         load = os.getloadavg()[0]
         for basis, spent, check in (("CPU", "cpu_s", chk["cpu_s"]), ("wall", "wall_s", chk["wall_s"])):
-            per_model = (sum(j[spent] for j in jobs) - start_up * len(jobs)) / models
-            job_s = start_up + sm * per_model
+            per_model = (sum(j[spent] for j in jobs) - start * len(jobs)) / models
+            job_s = start + sm * per_model
             check_s = check * n_sh * sm / models  # hashing scales with the bytes
             est = init["wall_s"] + rounds * job_s + check_s
             print(
@@ -292,10 +428,7 @@ def main(argv=None) -> int:
                 f"models in {n_sh} shards of {sm} on 2 cores: {per_model * 1e3:.1f} ms/model -> {job_s:.0f} s per job, "
                 f"{rounds} rounds, check ~{check_s:.0f} s: store stage ~{est / 60:.1f} min (goal <= 5 min)"
             )
-        print(f"store size ~{nbytes / nodes * total * (n_tri + n_hex) / 1e9:.1f} GB")
-    if a.explore:
-        explore(L, a.shards[0], a.shard_models, a.explore_models)
-    return 0
+    print(f"store size for the whole grid: ~{nbytes / nodes * total * (n_tri + n_hex) / 1e9:.1f} GB")
 
 
 if __name__ == "__main__":

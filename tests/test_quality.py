@@ -201,6 +201,39 @@ def test_fused_morph_check_equals_morph_then_check():
     assert np.abs(q.scaled_jacobian_batch_nb(batch, H) - explicit).max() < 1e-12
 
 
+def test_one_pass_model_quality_equals_the_separate_check_and_table3_metrics():
+    """``model_quality`` (check + Table 3, corner Jacobians once) against the functions it replaces in the
+    shard pass: the check kernel's scaled Jacobians and ``table3_summary`` of ``full_metrics_nb``, per model,
+    on perturbed grids with a few dozen inverted elements."""
+    X, H = perturbed_cube_grid(8, seed=3)
+    rng = np.random.default_rng(7)
+    batch = np.stack([X, X + rng.normal(0, 0.08, X.shape), 2.5 * X + 1.0])
+    # three parts, first seen in the order NP, vertebra, AF (not sorted): the columns must not care
+    part = np.array(["NP", "vertebra", "AF"])[rng.integers(0, 3, len(H))]
+    part[:3] = ["NP", "vertebra", "AF"]
+    got = q.model_quality(batch, H, part)
+    sj = q.scaled_jacobian_batch_nb(batch, H)  # the shard pass's former check kernel
+    assert got["invalid"].tolist() == (sj <= 0).sum(axis=1).tolist() and got["invalid"].min() > 20
+    assert np.array_equal(got["min_sj"], sj.min(axis=1))  # the same arithmetic: bit-identical
+    assert [k for k in got if k.startswith("min_sj_")] == ["min_sj_AF", "min_sj_NP", "min_sj_vertebra"]
+    for b in range(len(batch)):
+        ref = q.table3_summary(q.hex_quality_metrics(batch[b], H, certify=False), part).set_index("part")
+        for label in ("NP", "vertebra", "AF"):
+            assert got[f"min_sj_{label}"][b] == sj[b, part == label].min()
+            for col in ("pct_errors", "pct_warnings", "pct_edge_ratio_gt_10", "pct_max_face_angle_gt_160"):
+                assert got[f"{col}_{label}"][b] == ref.loc[label, col], (b, col, label)  # same decisions, same %
+            assert got[f"nodal_jacobian_ratio_min_{label}"][b] == ref.loc[label, "nodal_jacobian_ratio_min"]
+            # Gauss-point det J from the 12 edge vectors instead of 8 x dN . P: round-off only
+            g = ref.loc[label, "gauss_jacobian_ratio_min"]
+            assert got[f"gauss_jacobian_ratio_min_{label}"][b] == pytest.approx(g, rel=1e-12, abs=1e-12)
+    with pytest.raises(ValueError, match="outside"):
+        q.model_quality(batch[:, :-1], H, part)  # the last node is referenced
+    # table3_per_model is the same pass, chunked over models
+    t3 = q.table3_per_model(batch, H, part, chunk=2)
+    assert list(t3.columns[:2]) == ["pct_errors_NP", "pct_warnings_NP"] and len(t3) == 3
+    assert np.array_equal(t3["pct_errors_AF"].to_numpy(), got["pct_errors_AF"])
+
+
 def test_degenerate_element_reported_like_verdict():
     P = UNIT_CUBE.copy()
     P[1] = P[0]  # zero-length edge

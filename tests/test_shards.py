@@ -163,6 +163,8 @@ def test_deliberately_inverted_elements_are_untangled(template, hex_ssm):
     pts = bent.sample(w).astype(np.float32)
     raw = check_and_repair(pts.copy(), template, bent, w, np.array([5, 6]), repair=False)
     assert raw.loc[0, "invalid_before"] > 0 and raw.loc[0, "invalid_after"] == raw.loc[0, "invalid_before"]
+    # the same decision as the plain scaled Jacobian of those coordinates
+    assert raw["invalid_before"].tolist() == [int((scaled_jacobian(p[:n], template.hexes) <= 0).sum()) for p in pts]
     q = check_and_repair(pts, template, bent, w, np.array([5, 6]))
     assert q.loc[0, "invalid_before"] > 0 and q.loc[0, "invalid_after"] == 0 and q.loc[0, "repaired"]
     assert q.loc[0, "nodes_moved"] >= 1 and scaled_jacobian(pts[0, :n].astype(float), template.hexes).min() > 0
@@ -225,6 +227,23 @@ def test_virtual_table_joins_quality_and_cli_query_prints_ids(tmp_path, capsys):
     assert main(["query", "--PI", "53:", "--w1", ":0.5", "--results", str(tmp_path)]) == 0
     assert capsys.readouterr().out.split() == ["model_00001"]
     assert main(["query", "--PI", "oops", "--results", str(tmp_path)]) == 2
+
+
+def test_one_pass_check_decisions_equal_the_formula_kernel(shard1, template, hex_ssm):
+    """The one-pass check (``model_quality`` on the float64 batch) decides as the former check, the fused
+    morph kernel on the SSM formula: the same inverted-hex counts and the same minimum scaled Jacobians
+    (up to the round-off of BLAS against numba summing the modes)."""
+    from spinecohort.mesh.quality import morph_scaled_jacobian_nb
+
+    path, ids, w, quality = shard1
+    n = template.n_hex_nodes
+    mean, fields = np.ascontiguousarray(hex_ssm.mean[:n]), np.ascontiguousarray(hex_ssm.fields[:N_MODES, :n])
+    sj = morph_scaled_jacobian_nb(mean, fields, np.ascontiguousarray(w), np.ascontiguousarray(template.hexes))
+    assert quality["invalid_before"].tolist() == (sj <= 0).sum(axis=1).tolist()
+    assert np.abs(quality["min_sj_before"].to_numpy() - sj.min(axis=1)).max() < 1e-12
+    tissue = template.part_of_hex()
+    for t in np.unique(tissue):
+        assert np.abs(quality[f"min_sj_{t}"].to_numpy() - sj[:, tissue == t].min(axis=1)).max() < 1e-12
 
 
 def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, template, ssm, hex_ssm):

@@ -655,6 +655,200 @@ def full_metrics_batch_nb(Xb, conn):
     return out
 
 
+#: per (model, part) sums and minima of ``model_quality_nb``: its count columns, then its minimum columns
+_COUNTS = ("n_errors", "n_warnings", "n_edge_ratio_gt_10", "n_max_face_angle_gt_160")
+_MINIMA = ("min_scaled_jacobian", "nodal_jacobian_ratio_min", "gauss_jacobian_ratio_min")
+
+
+_G = float(_GAUSS_1D[0])  # Gauss abscissa 0.5 - 0.5 / sqrt(3) on [0, 1]; the other is 1 - _G
+
+
+@numba.njit(cache=True, inline="always")
+def _bilinear_nb(f, e, k, d):
+    """f[0] e[k] + f[1] e[k+1] + f[2] e[k+2] + f[3] e[k+3] in coordinate d (the four parallel edges k..k+3)."""
+    return f[0] * e[k, d] + f[1] * e[k + 1, d] + f[2] * e[k + 2, d] + f[3] * e[k + 3, d]
+
+
+@numba.njit(cache=True)
+def _element_quality_nb(P, e, out):
+    """The Table 3 metrics of one hex P (8, 3), each corner's edge vectors formed once -> out[0:6] = scaled J,
+    nodal J ratio, Gauss J ratio, edge ratio, min and max face angle (deg).  e: (12, 3) scratch.
+
+    A corner's three edge vectors give its Jacobian (scaled J, nodal ratio), their squared lengths (the 12
+    edges, each seen twice: edge ratio) and their pairwise angles (the 24 quad-face corner angles).  Same
+    operands and order as ``_element_min_sj_nb`` / ``full_metrics_nb``, so these are bit-identical; the
+    Gauss-point Jacobians use the 12 edge vectors (dX/du at (u, v, w) is the bilinear blend of the four
+    u-edges), which is the same trilinear map in fewer operations (agrees with ``full_metrics_nb`` to
+    ~1e-15 relative).
+    """
+    sj = VERDICT_DBL_MAX
+    degenerate = False
+    amin, amax = np.inf, -np.inf
+    lmin, lmax = np.inf, 0.0
+    cmin, cmax = np.inf, -np.inf
+    for i in range(8):
+        a, b, c = _CN[i, 0], _CN[i, 1], _CN[i, 2]
+        a0, a1, a2 = P[a, 0] - P[i, 0], P[a, 1] - P[i, 1], P[a, 2] - P[i, 2]
+        b0, b1, b2 = P[b, 0] - P[i, 0], P[b, 1] - P[i, 1], P[b, 2] - P[i, 2]
+        c0, c1, c2 = P[c, 0] - P[i, 0], P[c, 1] - P[i, 1], P[c, 2] - P[i, 2]
+        la = a0 * a0 + a1 * a1 + a2 * a2
+        lb = b0 * b0 + b1 * b1 + b2 * b2
+        lc = c0 * c0 + c1 * c1 + c2 * c2
+        al = _det3_nb(a0, a1, a2, b0, b1, b2, c0, c1, c2)
+        amin = min(amin, al)
+        amax = max(amax, al)
+        lmin = min(lmin, la, lb, lc)
+        lmax = max(lmax, la, lb, lc)
+        if la <= VERDICT_DBL_MIN or lb <= VERDICT_DBL_MIN or lc <= VERDICT_DBL_MIN:
+            degenerate = True
+        elif not degenerate:
+            sj = min(sj, al / np.sqrt(la * lb * lc))
+        # the corner's three face angles: every pair of its edges spans one of its three faces
+        for cs in (
+            (a0 * b0 + a1 * b1 + a2 * b2) / np.sqrt(la * lb),
+            (b0 * c0 + b1 * c1 + b2 * c2) / np.sqrt(lb * lc),
+            (c0 * a0 + c1 * a1 + c2 * a2) / np.sqrt(lc * la),
+        ):
+            cmax = max(cmax, cs)  # arccos is monotone: only the extreme cosines need it
+            cmin = min(cmin, cs)
+    x10 = (P[1, 0] - P[0, 0]) + (P[2, 0] - P[3, 0]) + (P[5, 0] - P[4, 0]) + (P[6, 0] - P[7, 0])
+    x11 = (P[1, 1] - P[0, 1]) + (P[2, 1] - P[3, 1]) + (P[5, 1] - P[4, 1]) + (P[6, 1] - P[7, 1])
+    x12 = (P[1, 2] - P[0, 2]) + (P[2, 2] - P[3, 2]) + (P[5, 2] - P[4, 2]) + (P[6, 2] - P[7, 2])
+    x20 = (P[3, 0] - P[0, 0]) + (P[2, 0] - P[1, 0]) + (P[7, 0] - P[4, 0]) + (P[6, 0] - P[5, 0])
+    x21 = (P[3, 1] - P[0, 1]) + (P[2, 1] - P[1, 1]) + (P[7, 1] - P[4, 1]) + (P[6, 1] - P[5, 1])
+    x22 = (P[3, 2] - P[0, 2]) + (P[2, 2] - P[1, 2]) + (P[7, 2] - P[4, 2]) + (P[6, 2] - P[5, 2])
+    x30 = (P[4, 0] - P[0, 0]) + (P[5, 0] - P[1, 0]) + (P[6, 0] - P[2, 0]) + (P[7, 0] - P[3, 0])
+    x31 = (P[4, 1] - P[0, 1]) + (P[5, 1] - P[1, 1]) + (P[6, 1] - P[2, 1]) + (P[7, 1] - P[3, 1])
+    x32 = (P[4, 2] - P[0, 2]) + (P[5, 2] - P[1, 2]) + (P[6, 2] - P[2, 2]) + (P[7, 2] - P[3, 2])
+    l1 = x10 * x10 + x11 * x11 + x12 * x12
+    l2 = x20 * x20 + x21 * x21 + x22 * x22
+    l3 = x30 * x30 + x31 * x31 + x32 * x32
+    if degenerate or l1 <= VERDICT_DBL_MIN or l2 <= VERDICT_DBL_MIN or l3 <= VERDICT_DBL_MIN:
+        out[0] = VERDICT_DBL_MAX
+    else:
+        out[0] = min(sj, _det3_nb(x10, x11, x12, x20, x21, x22, x30, x31, x32) / np.sqrt(l1 * l2 * l3))
+    out[1] = -VERDICT_DBL_MAX if amax <= VERDICT_DBL_MIN else amin / amax
+    # u-edges (v, w) = (0,0), (1,0), (0,1), (1,1); v-edges (u, w) in the same order; w-edges (u, v) likewise
+    for d in range(3):
+        e[0, d], e[1, d], e[2, d], e[3, d] = P[1, d] - P[0, d], P[2, d] - P[3, d], P[5, d] - P[4, d], P[6, d] - P[7, d]
+        e[4, d], e[5, d], e[6, d], e[7, d] = P[3, d] - P[0, d], P[2, d] - P[1, d], P[7, d] - P[4, d], P[6, d] - P[5, d]
+        e[8, d], e[9, d], e[10, d], e[11, d] = (
+            P[4, d] - P[0, d],
+            P[5, d] - P[1, d],
+            P[7, d] - P[3, d],
+            P[6, d] - P[2, d],
+        )
+    gmin, gmax = np.inf, -np.inf
+    for iu in range(2):
+        u = _G if iu == 0 else 1.0 - _G
+        for iv in range(2):
+            v = _G if iv == 0 else 1.0 - _G
+            for iw in range(2):
+                w = _G if iw == 0 else 1.0 - _G
+                fu = ((1 - v) * (1 - w), v * (1 - w), (1 - v) * w, v * w)
+                fv = ((1 - u) * (1 - w), u * (1 - w), (1 - u) * w, u * w)
+                fw = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
+                g = _det3_nb(
+                    _bilinear_nb(fu, e, 0, 0),
+                    _bilinear_nb(fu, e, 0, 1),
+                    _bilinear_nb(fu, e, 0, 2),
+                    _bilinear_nb(fv, e, 4, 0),
+                    _bilinear_nb(fv, e, 4, 1),
+                    _bilinear_nb(fv, e, 4, 2),
+                    _bilinear_nb(fw, e, 8, 0),
+                    _bilinear_nb(fw, e, 8, 1),
+                    _bilinear_nb(fw, e, 8, 2),
+                )
+                gmin = min(gmin, g)
+                gmax = max(gmax, g)
+    out[2] = -VERDICT_DBL_MAX if gmax <= VERDICT_DBL_MIN else gmin / gmax
+    out[3] = np.sqrt(lmax / lmin) if lmin > 0 else np.inf
+    out[4] = np.degrees(np.arccos(min(1.0, cmax)))
+    out[5] = np.degrees(np.arccos(max(-1.0, cmin)))
+
+
+@numba.njit(cache=True)
+def model_quality_nb(Xb, conn, part, n_parts, warn_sj, warn_lo_deg, warn_hi_deg):
+    """Check + Table 3 of a batch in one pass: per model b and part p of Xb (B, n_nodes, 3), conn (E, 8),
+    part (E,) codes 0..n_parts-1 -> (counts (B, P, 4) int64, minima (B, P, 3) float64).
+
+    counts: errors (scaled J <= 0), warnings (not an error and scaled J < warn_sj or a face angle outside
+    [warn_lo_deg, warn_hi_deg]), edge ratio > 10, max face angle > 160 deg; minima: scaled J, nodal and
+    Gauss Jacobian ratio.  Nothing per element is kept: memory is O(B P), whatever E.
+    """
+    B, E = Xb.shape[0], conn.shape[0]
+    counts = np.zeros((B, n_parts, 4), dtype=np.int64)
+    minima = np.full((B, n_parts, 3), np.inf)
+    P = np.empty((8, 3))
+    edges = np.empty((12, 3))
+    m = np.empty(6)
+    for b in range(B):
+        X = Xb[b]
+        for e in range(E):
+            for k in range(8):
+                for d in range(3):
+                    P[k, d] = X[conn[e, k], d]
+            _element_quality_nb(P, edges, m)
+            p = part[e]
+            error = m[0] <= 0
+            if error:
+                counts[b, p, 0] += 1
+            elif m[0] < warn_sj or m[4] < warn_lo_deg or m[5] > warn_hi_deg:
+                counts[b, p, 1] += 1
+            if m[3] > 10:
+                counts[b, p, 2] += 1
+            if m[5] > 160:
+                counts[b, p, 3] += 1
+            minima[b, p, 0] = min(minima[b, p, 0], m[0])
+            minima[b, p, 1] = min(minima[b, p, 1], m[1])
+            minima[b, p, 2] = min(minima[b, p, 2], m[2])
+    return counts, minima
+
+
+def model_quality(points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray) -> dict[str, np.ndarray]:
+    """The shard pass's per-model quality in one kernel pass (``model_quality_nb``): the check (scaled Jacobian
+    per model and tissue) and the seed's Table 3 columns, from one evaluation of each hex's corner Jacobians.
+
+    points (B, n_nodes, 3) mm (any float dtype, any layout: the kernel reads the node rows of ``hexes``);
+    part_of_element (E,) labels.  Returns (B,) arrays: ``min_sj`` and ``invalid`` (hexes with scaled Jacobian
+    <= 0) over all hexes, ``min_sj_<part>`` per part (parts in sorted order), and the ``table3_per_model``
+    columns ``<metric>_<part>`` (parts in order of first appearance).
+    """
+    part = np.asarray(part_of_element)
+    conn = np.ascontiguousarray(hexes, dtype=np.int64)
+    if part.shape != (len(conn),):
+        raise ValueError(f"part_of_element must have shape ({len(conn)},), got {part.shape}")
+    uniq, first, inverse = np.unique(part, return_index=True, return_inverse=True)  # uniq sorted
+    appearance = np.argsort(first, kind="stable")  # sorted-label indices in order of first appearance
+    rank = np.empty(len(uniq), dtype=np.int64)
+    rank[appearance] = np.arange(len(uniq))
+    code = rank[inverse.ravel()]  # per element: its label's index in order of first appearance
+    labels = uniq[appearance].tolist()
+    x = np.asarray(points)
+    if x.ndim != 3 or x.shape[-1] != 3:
+        raise ValueError(f"points must have shape (B, n_nodes, 3), got {x.shape}")
+    if conn.size and (conn.min() < 0 or conn.max() >= x.shape[1]):  # the kernel does not bounds-check
+        raise ValueError(f"hexes reference nodes outside 0..{x.shape[1] - 1}")
+    if x.dtype != np.float64:
+        x = x.astype(np.float64)
+    counts, minima = model_quality_nb(
+        x, conn, code.astype(np.int64), len(labels), WARNING_MIN_SCALED_JACOBIAN, *WARNING_FACE_ANGLE_DEG
+    )
+    n_el = np.bincount(code, minlength=len(labels)).astype(np.float64)
+    out = {"min_sj": minima[:, :, 0].min(axis=1), "invalid": counts[:, :, 0].sum(axis=1)}
+    for j in rank:  # sorted label order
+        out[f"min_sj_{labels[j]}"] = minima[:, j, 0]
+    for j, label in enumerate(labels):
+        # 100 * (count / n): the value of 100 * mean(boolean mask) in table3_summary, bit for bit
+        out[f"pct_errors_{label}"] = 100.0 * (counts[:, j, 0] / n_el[j])
+        out[f"pct_warnings_{label}"] = 100.0 * (counts[:, j, 1] / n_el[j])
+        out[f"nodal_jacobian_ratio_min_{label}"] = minima[:, j, 1]
+        out[f"gauss_jacobian_ratio_min_{label}"] = minima[:, j, 2]
+        out[f"pct_edge_ratio_gt_10_{label}"] = 100.0 * (counts[:, j, 2] / n_el[j])
+        out[f"pct_max_face_angle_gt_160_{label}"] = 100.0 * (counts[:, j, 3] / n_el[j])
+    return out
+
+
 def table3_per_model(
     points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray, chunk: int = 49
 ) -> pd.DataFrame:
@@ -662,30 +856,12 @@ def table3_per_model(
 
     Columns ``<metric>_<part>`` for every part label (e.g. vertebra, AF, NP, CEP): ``pct_errors`` (scaled
     Jacobian <= 0), ``pct_warnings`` (as ``table3_summary``), ``nodal_jacobian_ratio_min``,
-    ``gauss_jacobian_ratio_min``, ``pct_edge_ratio_gt_10``, ``pct_max_face_angle_gt_160``.  Numba kernel
-    over chunks of models (float64), so memory stays at chunk x elements x 7 values.
+    ``gauss_jacobian_ratio_min``, ``pct_edge_ratio_gt_10``, ``pct_max_face_angle_gt_160``.  One
+    ``model_quality`` pass per ``chunk`` models (float64); memory stays O(chunk x parts).
     """
-    part = np.asarray(part_of_element)
-    conn = np.ascontiguousarray(hexes, dtype=np.int64)
-    n = int(conn.max()) + 1
-    labels = list(dict.fromkeys(part.tolist()))
     cols: dict[str, list[np.ndarray]] = {}
     for i in range(0, len(points), chunk):
-        m = full_metrics_batch_nb(np.ascontiguousarray(points[i : i + chunk, :n], dtype=np.float64), conn)
-        sj, njr, gjr, er, amin, amax = m[..., 0], m[..., 2], m[..., 3], m[..., 4], m[..., 5], m[..., 6]
-        error = sj <= 0
-        warning = ~error & (
-            (sj < WARNING_MIN_SCALED_JACOBIAN) | (amin < WARNING_FACE_ANGLE_DEG[0]) | (amax > WARNING_FACE_ANGLE_DEG[1])
-        )
-        for label in labels:
-            sel = part == label
-            for name, v in (
-                ("pct_errors", 100.0 * error[:, sel].mean(1)),
-                ("pct_warnings", 100.0 * warning[:, sel].mean(1)),
-                ("nodal_jacobian_ratio_min", njr[:, sel].min(1)),
-                ("gauss_jacobian_ratio_min", gjr[:, sel].min(1)),
-                ("pct_edge_ratio_gt_10", 100.0 * (er[:, sel] > 10).mean(1)),
-                ("pct_max_face_angle_gt_160", 100.0 * (amax[:, sel] > 160).mean(1)),
-            ):
-                cols.setdefault(f"{name}_{label}", []).append(v)
+        for k, v in model_quality(points[i : i + chunk], hexes, part_of_element).items():
+            if k.startswith(("pct_", "nodal_", "gauss_")):
+                cols.setdefault(k, []).append(v)
     return pd.DataFrame({k: np.concatenate(v) for k, v in cols.items()})

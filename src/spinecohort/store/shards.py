@@ -2,11 +2,12 @@
 
 A shard is a contiguous model-ID range (``store.shard_range``).  ``process_shard`` makes one pass over it
 in batches of whole store chunks: it samples the triangulated and the hexahedral SSM (float64 formula plus
-the disc-contact distraction), checks every hex of every model with the fused numba kernel
-(``quality.morph_scaled_jacobian_nb``), untangles the models with inverted hexes exactly as
-``models.hex_points_checked`` does (``repair.untangle`` against the hex mean, one shared
-``UntangleContext``), computes the Table 3 rows and the spinopelvic parameters on those float64
-coordinates, and hands the batch to the store's ``ShardWriter``; nothing is read back.  Memory is one
+the disc-contact distraction), checks every hex of every model and computes its Table 3 rows in one numba
+pass (``quality.model_quality``: each hex's corner Jacobians are formed once for both), untangles the
+models with inverted hexes exactly as ``models.hex_points_checked`` does (``repair.untangle`` against the
+hex mean, one shared ``UntangleContext``; only those models are evaluated again), computes the
+spinopelvic parameters on those float64 coordinates, and hands the batch to the store's ``ShardWriter``;
+nothing is read back.  Memory is one
 batch (49 models x ~145k nodes x 3 x 8 B ~ 170 MB per float64 array), whatever the shard size.  Check and
 repair happen *before* the store write, so the store only ever holds the coordinates the FE models use;
 a model that cannot be repaired is kept as sampled and reported (``invalid_after > 0``).
@@ -29,12 +30,7 @@ from spinecohort.measure.spinopelvic import measure
 from spinecohort.measure.tables import QUALITY_SUMMARY
 from spinecohort.mesh.contact import distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
-from spinecohort.mesh.quality import (
-    morph_scaled_jacobian_nb,
-    scaled_jacobian,
-    scaled_jacobian_batch_nb,
-    table3_per_model,
-)
+from spinecohort.mesh.quality import model_quality
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
@@ -86,9 +82,80 @@ def sample_points(
     return (tri, hexp, gaps, offsets) if return_contact else (tri, hexp)
 
 
-def _min_by_part(sj: np.ndarray, part: np.ndarray) -> dict[str, np.ndarray]:
-    """Per tissue label: min scaled Jacobian per model, sj (S, E) -> {tissue: (S,)}."""
-    return {t: sj[:, part == t].min(axis=1) for t in np.unique(part)}
+def shard_quality(
+    hex_points: np.ndarray,
+    template: HexTemplate,
+    hex_ssm: HexSSM,
+    weights: np.ndarray,
+    model_ids: np.ndarray,
+    repair: bool = True,
+    log=None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Check every hex of every model, untangle the models with inverted hexes **in place**, and the seed's
+    Table 3 rows: one ``quality.model_quality`` pass over the batch (the corner Jacobians of each hex are
+    formed once for both), plus one more over the few repaired models.
+
+    hex_points (S, n_nodes, 3) mm: the coordinates to check, as they will be stored (``process_shard``
+    passes its float64 batch: the SSM formula plus the disc-contact distraction); ``weights`` (S, m) SD
+    and ``model_ids`` name the models.  Repaired models (``repair.untangle`` against the hex mean) are
+    written back into ``hex_points``.  Returns (check rows, Table 3 rows), one row per model.  Check rows:
+    ``min_sj_before/after``, ``invalid_before/after`` (hexes with sJ <= 0), ``nodes_moved``,
+    ``max_displacement_mm``, ``repaired``, ``repair_error`` (empty or the RepairError message) and
+    ``min_sj_<tissue>`` (after repair); Table 3 rows: ``table3_per_model``'s columns, after repair.
+    repair=False only checks (then invalid_after == invalid_before).
+    """
+    w = _check_weights(weights, hex_ssm.fields.shape[0], "hex SSM")
+    if hex_points.shape != (len(w), *hex_ssm.mean.shape):
+        raise ValueError(f"hex_points must be {(len(w), *hex_ssm.mean.shape)}, got {hex_points.shape}")
+    n = template.n_hex_nodes
+    hexes = np.ascontiguousarray(template.hexes, dtype=np.int64)
+    part = template.part_of_hex()
+    metrics = model_quality(hex_points, hexes, part)
+    rows = pd.DataFrame(
+        {
+            "model_id": np.asarray(model_ids, dtype=np.int64),
+            "min_sj_before": metrics["min_sj"],
+            "invalid_before": metrics["invalid"],
+            "nodes_moved": 0,
+            "max_displacement_mm": 0.0,
+            "repaired": False,
+            "repair_error": "",
+        }
+    )
+    bad = np.flatnonzero(metrics["invalid"])
+    fixed_models = []
+    if len(bad) and repair:
+        mean = np.ascontiguousarray(hex_ssm.mean[:n])
+        ctx = prepare_untangle(hexes, mean)  # topology + reference quality, shared by every model
+        for k in bad:  # few models per shard (~2 % on the default grid); untangle is per mesh
+            try:
+                fixed, rep = untangle(np.array(hex_points[k, :n], dtype=np.float64), hexes, mean, context=ctx)
+            except RepairError as exc:
+                rows.loc[k, "repair_error"] = f"{model_name(int(model_ids[k]))}: {exc}"
+                if log is not None:
+                    log.warning(
+                        "%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])), w[k].tolist(), exc
+                    )
+                continue
+            hex_points[k, :n] = fixed
+            fixed_models.append(k)
+            rows.loc[k, ["nodes_moved", "max_displacement_mm", "repaired"]] = (
+                int(len(rep.moved_nodes)),
+                float(rep.max_displacement_mm),
+                True,
+            )
+    if fixed_models:  # the repaired models' quality, evaluated again on their new coordinates
+        again = model_quality(hex_points[fixed_models], hexes, part)
+        for key, v in again.items():
+            metrics[key][fixed_models] = v
+    rows["min_sj_after"] = metrics["min_sj"]
+    rows["invalid_after"] = metrics["invalid"]
+    for key, v in metrics.items():
+        if key.startswith("min_sj_"):
+            rows[key] = v
+    cols = ["model_id", *QUALITY_SUMMARY, "repair_error"]  # the sheet's summary columns, spelled once
+    table3 = pd.DataFrame({k: v for k, v in metrics.items() if k not in ("min_sj", "invalid") and k not in rows})
+    return rows[cols + [c for c in rows.columns if c not in cols]], table3
 
 
 def check_and_repair(
@@ -99,77 +166,9 @@ def check_and_repair(
     model_ids: np.ndarray,
     repair: bool = True,
     log=None,
-    level_offsets: np.ndarray | None = None,
 ) -> pd.DataFrame:
-    """Scaled Jacobian of every hex of every model; untangle the models with inverted hexes **in place**.
-
-    hex_points (S, n_nodes, 3) float32 mm (the sampled coordinates of ``weights`` (S, m)): the check runs
-    on the float64 SSM formula (fused kernel), the repair on that float64 sample, and repaired models
-    are written back into ``hex_points``.  Returns one quality row per model: ``min_sj_before/after``,
-    ``invalid_before/after`` (hexes with sJ <= 0), ``nodes_moved``, ``max_displacement_mm``, ``repaired``,
-    ``repair_error`` (empty or the RepairError message) and ``min_sj_<tissue>`` (after repair).
-    repair=False only checks (the rows then have invalid_after == invalid_before).
-    ``level_offsets`` (S, 17, 3) mm: the disc-contact distraction ``sample_points`` applied; distracted
-    models are checked (and repaired) on the float64 formula plus their offsets.
-    """
-    w = _check_weights(weights, hex_ssm.fields.shape[0], "hex SSM")
-    if hex_points.shape != (len(w), *hex_ssm.mean.shape):
-        raise ValueError(f"hex_points must be {(len(w), *hex_ssm.mean.shape)}, got {hex_points.shape}")
-    n = template.n_hex_nodes
-    hexes = np.ascontiguousarray(template.hexes, dtype=np.int64)
-    mean = np.ascontiguousarray(hex_ssm.mean[:n])
-    fields = np.ascontiguousarray(hex_ssm.fields[: w.shape[1], :n])
-    sj = morph_scaled_jacobian_nb(mean, fields, np.ascontiguousarray(w), hexes)  # (S, E)
-    moved = (
-        np.flatnonzero(np.abs(level_offsets).max(axis=(1, 2)) > 0)
-        if level_offsets is not None
-        else np.array([], dtype=np.int64)
-    )
-    shift = {}
-    if len(moved):  # distracted models: checked on their own float64 coordinates, one batched kernel call
-        offsets = hex_ssm.contact.hex_offsets(level_offsets[moved])[:, :n]
-        shift = dict(zip(moved.tolist(), offsets))
-        pts = mean + np.tensordot(w[moved], fields, axes=(1, 0)) + offsets
-        sj[moved] = scaled_jacobian_batch_nb(np.ascontiguousarray(pts), hexes)
-    invalid = (sj <= 0).sum(axis=1)
-    rows = pd.DataFrame(
-        {
-            "model_id": np.asarray(model_ids, dtype=np.int64),
-            "min_sj_before": sj.min(axis=1),
-            "invalid_before": invalid,
-            "nodes_moved": 0,
-            "max_displacement_mm": 0.0,
-            "repaired": False,
-            "repair_error": "",
-        }
-    )
-    bad = np.flatnonzero(invalid)
-    if len(bad) and repair:
-        ctx = prepare_untangle(hexes, mean)  # topology + reference quality, shared by every model
-        for k in bad:  # few models per shard (~2 % on the default grid); untangle is per mesh
-            pts = mean + np.tensordot(w[k], fields, axes=(0, 0)) + shift.get(k, 0.0)
-            try:
-                fixed, rep = untangle(pts, hexes, mean, context=ctx)
-            except RepairError as exc:
-                rows.loc[k, "repair_error"] = f"{model_name(int(model_ids[k]))}: {exc}"
-                if log is not None:
-                    log.warning(
-                        "%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])), w[k].tolist(), exc
-                    )
-                continue
-            hex_points[k, :n] = fixed
-            sj[k] = scaled_jacobian(fixed, hexes)
-            rows.loc[k, ["nodes_moved", "max_displacement_mm", "repaired"]] = (
-                int(len(rep.moved_nodes)),
-                float(rep.max_displacement_mm),
-                True,
-            )
-    rows["min_sj_after"] = sj.min(axis=1)
-    rows["invalid_after"] = (sj <= 0).sum(axis=1)
-    for tissue, v in _min_by_part(sj, template.part_of_hex()).items():
-        rows[f"min_sj_{tissue}"] = v
-    cols = ["model_id", *QUALITY_SUMMARY, "repair_error"]  # the sheet's summary columns, spelled once
-    return rows[cols + [c for c in rows.columns if c not in cols]]
+    """The check rows of :func:`shard_quality` (scaled Jacobian of every hex, untangling in place)."""
+    return shard_quality(hex_points, template, hex_ssm, weights, model_ids, repair, log)[0]
 
 
 def _param_diff(p_tri: pd.DataFrame, p_hex: pd.DataFrame) -> pd.DataFrame:
@@ -214,13 +213,14 @@ def process_shard(
     **measure_kw,
 ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, dict]:
     """One pass over a shard, batch by batch, nothing decoded again: sample (float64 SSM formula + disc
-    contact) -> check every hex, repair inverted models -> Table 3 rows -> spinopelvic parameters of the
+    contact) -> check every hex and its Table 3 rows, repair inverted models -> spinopelvic parameters of the
     tri and the hex model -> ``writer.add`` (a :class:`~spinecohort.store.zarr_store.ShardWriter`; None: no
     store write).  The parameters come from the float64 coordinates, i.e. from what the store holds before
     its 2^-10 mm rounding.
 
     ``batch`` models per step (rounded up to whole store chunks by the caller); ``measure_kw``: vertical,
-    assumed_age, c7_proxy.  Returns (quality table, params table, tri-vs-hex table, timing in s).
+    assumed_age, c7_proxy.  Returns (quality table, params table, tri-vs-hex table, timing: wall ``<phase>_s``
+    and CPU ``<phase>_cpu_s`` in s of the phases sample, quality (check + repair + Table 3), measure, write).
     """
     w = _check_weights(weights, min(ssm.n_modes, hex_ssm.fields.shape[0]), "SSM")
     ids = np.asarray(model_ids, dtype=np.int64)
@@ -229,8 +229,8 @@ def process_shard(
     m = w.shape[1]
     df_tri = ssm.deformation_fields(m).reshape(m, -1)
     df_hex = hex_ssm.fields[:m].reshape(m, -1)
-    part = template.part_of_hex()
-    timing = dict.fromkeys(("sample_s", "check_repair_s", "table3_s", "measure_s", "write_s"), 0.0)
+    phases = ("sample", "quality", "measure", "write")
+    timing = {f"{k}{unit}": 0.0 for unit in ("_s", "_cpu_s") for k in phases}  # wall and CPU per phase
     quality, p_tri, p_hex = [], [], []
     # two float64 batch buffers reused batch after batch: fresh ~100 MB arrays per batch cost more in page
     # faults than the products that fill them
@@ -238,32 +238,31 @@ def process_shard(
     h_buf = np.empty((min(batch, len(w)), *hex_ssm.mean.shape))
     for i in range(0, len(w), batch):
         wb, ib = w[i : i + batch], ids[i : i + batch]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         t64, h64 = t_buf[: len(wb)], h_buf[: len(wb)]
         np.matmul(wb, df_tri, out=t64.reshape(len(wb), -1))
         t64 += ssm.mean
         np.matmul(wb, df_hex, out=h64.reshape(len(wb), -1))
         h64 += hex_ssm.mean
-        offsets = None
         if hex_ssm.contact is not None:
             gaps, offsets = resolve_contact(t64, h64, hex_ssm.contact)
-        t1 = time.perf_counter()
-        q = check_and_repair(h64, template, hex_ssm, wb, ib, repair, log, offsets)
+        t1, c1 = time.perf_counter(), time.process_time()
+        # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds
+        q, table3 = shard_quality(h64, template, hex_ssm, wb, ib, repair, log)
         if hex_ssm.contact is not None:
             for key, v in distraction_summary(gaps, offsets).items():
                 q[key] = v
-        t2 = time.perf_counter()
-        # the seed's Table 3 columns per model and part, on the coordinates the store holds (after repair)
-        quality.append(pd.concat([q, table3_per_model(h64, template.hexes, part)], axis=1))
-        t3 = time.perf_counter()
+        quality.append(pd.concat([q, table3], axis=1))
+        t2, c2 = time.perf_counter(), time.process_time()
         p_tri.append(measure(t64, tri_landmarks, **measure_kw))
         p_hex.append(measure(h64, hex_lm, **measure_kw))
-        t4 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         if writer is not None:
             writer.add(t64, h64)
-        t5 = time.perf_counter()
-        for key, dt in zip(timing, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
-            timing[key] += dt
+        t4, c4 = time.perf_counter(), time.process_time()
+        for k, dt, dc in zip(phases, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), (c1 - c0, c2 - c1, c3 - c2, c4 - c3)):
+            timing[f"{k}_s"] += dt
+            timing[f"{k}_cpu_s"] += dc
     p_tri = pd.concat(p_tri, ignore_index=True)
     p_hex = pd.concat(p_hex, ignore_index=True)
     return pd.concat(quality, ignore_index=True), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
@@ -386,7 +385,7 @@ def run_shard_job(
 
     # the rule has threads: 1 (Snakemake sets OMP/OpenBLAS threads to it; blosc has its own pool)
     blosc.set_nthreads(1)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     store = Path(store)
     ids, weights = shard_models_of(store, shard)  # the store's own grid, not the config's
     template = HexTemplate.load(inputs["template"])
@@ -394,7 +393,7 @@ def run_shard_job(
     ssm, hex_ssm = SSM.load(inputs["ssm"]), HexSSM.load(inputs["hex_ssm"])
     writer = ShardWriter(store, shard)
     batch = -(-DEFAULT_CHUNK // writer.chunk) * writer.chunk  # whole store chunks per batch
-    t_load = time.perf_counter()
+    t_load, c_load = time.perf_counter(), time.process_time()
     try:
         quality, params, diff, timing = process_shard(
             ssm,
@@ -421,7 +420,7 @@ def run_shard_job(
     except BaseException:
         writer.abort()
         raise
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     record = writer.close()
     quality.to_csv(outputs["quality"], index=False, float_format="%.6g")
     params.to_csv(outputs["params"], index=False, float_format="%.6f")
@@ -430,7 +429,9 @@ def run_shard_job(
     record.update(
         timing,
         load_s=t_load - t0,
+        load_cpu_s=c_load - c0,
         close_s=time.perf_counter() - t1,
+        close_cpu_s=time.process_time() - c1,  # index, renames, weights, sidecar and the three CSV files
         encode_cpu_s=writer.encode_cpu_s,
         stored_bytes=writer.stored_bytes,
         stored_nodes=len(ids) * sum(writer.n_nodes.values()),

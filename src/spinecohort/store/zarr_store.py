@@ -18,7 +18,8 @@ specification, so any conforming reader (zarr-python, tensorstore, zarrs, zarr.j
 float32 for |x| < 16 m, so the stored value *is* the rounded one: error <= 2^-11 mm = 0.49 um), an inner
 chunk holds the ``chunk_models`` models along the last mode, and the ``transpose`` codec stores it
 coordinate-major with the model axis innermost (x of node 0 of the 7 models, x of node 1, ...), where
-neighbouring values share their high bits; ``blosc`` (bitshuffle, zstd level 1) then packs the bit planes.
+neighbouring values share their high bits; ``blosc`` (bitshuffle, zstd level 3, blocks of 8,192 nodes x 7
+models) then packs the bit planes.
 Sharding codec: one shard object per array per shard, index at the end with crc32c.
 
 :class:`ShardWriter` writes a shard object itself (the sharding format: the encoded inner chunks, then the
@@ -37,6 +38,7 @@ import time
 from pathlib import Path
 
 import google_crc32c
+import numba
 import numpy as np
 import zarr
 from numcodecs import Blosc
@@ -50,13 +52,15 @@ DEFAULT_SHARD_MODELS = 2401
 QUANTUM_EXP = 10
 ENCODINGS = ("float32-q10", "float32")
 POINT_ARRAYS = ("tri/points", "hex/points")
-#: version 2: core Zarr v3 codecs only (version 1 used numcodecs filters: refused, see _open_meta)
-STORE_FORMAT = "spinecohort.cohort-store/2"
+#: version 3: blosc clevel 2 on 224 KiB blocks (version 2: clevel 1 on 1 MiB blocks; version 1: numcodecs
+#: filters); a store of another version is refused, see _open_meta
+STORE_FORMAT = "spinecohort.cohort-store/3"
 _FORMAT_PREFIX = "spinecohort.cohort-store/"
-#: blosc inside each inner chunk: zstd level 1 with bitshuffle on 1 MiB blocks (docs/store.md: levels 2-3
-#: save 1-2 % of the bytes at 2-5x the encode time)
-BLOSC_CLEVEL = 1
-BLOSC_BLOCK_BYTES = 1 << 20
+#: blosc inside each inner chunk: bitshuffle, clevel 2 (blosc's zstd level 3) on blocks of 224 KiB = 8,192
+#: nodes x 7 models x 4 B (docs/store.md: -3.6 % of the bytes of clevel 1 on 1 MiB blocks at ~1.8x its encode
+#: CPU; 1 MiB and 4 MiB blocks compress worse, blosc's clevel 3 is no better)
+BLOSC_CLEVEL = 2
+BLOSC_BLOCK_BYTES = 224 << 10
 #: transpose of an inner chunk (models, nodes, xyz) -> stored (xyz, nodes, models)
 CHUNK_ORDER = (2, 1, 0)
 _CHECKSUM_DIR = "checksums"
@@ -164,17 +168,39 @@ def quantize_mm(x: np.ndarray, encoding: str = "float32-q10") -> np.ndarray:
     return (np.rint(np.asarray(x, dtype=np.float64) * scale) / scale).astype(np.float32)
 
 
-def _quantize_into(x: np.ndarray, scratch: np.ndarray, out: np.ndarray, encoding: str) -> np.ndarray:
-    """:func:`quantize_mm` into preallocated buffers (float64 scratch, float32 out, x's shape): the writer
-    reuses them batch after batch, which saves the page faults of fresh ~100 MB temporaries (measured: 3x)."""
-    if encoding == "float32":
-        out[...] = x
-        return out
-    np.multiply(x, float(2**QUANTUM_EXP), out=scratch)
-    # rint in float64, cast to float32: an integer below 2^24, exact; then a power-of-two scale, exact too
-    np.rint(scratch, out=out, casting="same_kind")
-    out *= np.float32(2.0**-QUANTUM_EXP)
-    return out
+@numba.njit(cache=True)
+def _stored_chunks_nb(x, quantize, chunk, out):
+    """The stored values of a batch x (B, N, 3) mm, chunk by chunk in stored order: out (K, 3, N, chunk)
+    float32 with out[k, c, n, m] = value of model k * chunk + m, node n, coordinate c (``CHUNK_ORDER``);
+    models past B are 0 (the boundary chunk's fill value).  quantize: rint(x * 2^10) / 2^10 in float64,
+    cast to float32 (exact, see :func:`quantize_mm`), else the nearest float32.  Returns (min, max, all
+    finite) of the stored values.
+
+    One pass for what numpy does in five (scale, rint, cast, rescale, transpose copy) plus the range check:
+    the batch is ~1 GB of float64 per shard job's 49 models, so every pass over it costs.
+    """
+    B, N = x.shape[0], x.shape[1]
+    scale = 2.0**QUANTUM_EXP
+    inv = np.float32(2.0**-QUANTUM_EXP)
+    lo, hi, finite = np.inf, -np.inf, True
+    for k in range(out.shape[0]):
+        for m in range(chunk):
+            b = k * chunk + m
+            if b >= B:
+                for c in range(3):
+                    for n in range(N):
+                        out[k, c, n, m] = 0.0
+                continue
+            for n in range(N):
+                for c in range(3):
+                    v = np.float32(np.rint(x[b, n, c] * scale)) * inv if quantize else np.float32(x[b, n, c])
+                    out[k, c, n, m] = v
+                    if not np.isfinite(v):
+                        finite = False
+                    else:
+                        lo = min(lo, v)
+                        hi = max(hi, v)
+    return lo, hi, finite
 
 
 def _blosc_codecs(clevel: int) -> tuple[BloscCodec, Blosc]:
@@ -327,7 +353,7 @@ def _open_meta(path: str | Path) -> tuple[zarr.Group, dict]:
         if isinstance(fmt, str) and fmt.startswith(_FORMAT_PREFIX):
             raise StoreVersionError(
                 f"{p} was written by another spinecohort version (format {fmt!r}, this version reads "
-                f"{STORE_FORMAT!r}: core Zarr v3 codecs only); it cannot be read correctly. Rebuild it: "
+                f"{STORE_FORMAT!r}); it cannot be read correctly. Rebuild it: "
                 f"remove {p} and the shard records (results/shards/), then run snakemake again"
             )
         raise ValueError(f"{p} is not a spinecohort cohort store (format {fmt!r})")
@@ -336,7 +362,11 @@ def _open_meta(path: str | Path) -> tuple[zarr.Group, dict]:
 
 def _check_coordinates(name: str, shard: int, x: np.ndarray, max_abs_mm: float) -> None:
     lo, hi = float(x.min()), float(x.max())  # NaN propagates; no temporaries on large batches
-    if not (np.isfinite(lo) and np.isfinite(hi)):
+    _check_range(name, shard, lo, hi, bool(np.isfinite(lo) and np.isfinite(hi)), max_abs_mm)
+
+
+def _check_range(name: str, shard: int, lo: float, hi: float, finite: bool, max_abs_mm: float) -> None:
+    if not finite:
         raise ValueError(f"{name} of shard {shard} has non-finite coordinates")
     if max(-lo, hi) > max_abs_mm:
         raise ValueError(
@@ -376,7 +406,7 @@ class ShardWriter:
             self._index[name] = np.full((slots, 2), _EMPTY, dtype="<u8")
             self._sha[name] = hashlib.sha256()
             self._offset[name] = 0
-        self._buffers = {}  # per array: (float64 scratch, float32 values) of the largest batch so far
+        self._buffers = {}  # per array: float32 stored-order chunks of the largest batch so far
         self.n_written = 0
         self.encode_cpu_s = 0.0  # CPU time in the codec alone (the benchmark's compression floor)
         self.stored_bytes = 0
@@ -410,21 +440,22 @@ class ShardWriter:
             want = (self.n_nodes[name], 3)
             if x.ndim != 3 or x.shape[1:] != want:
                 raise ValueError(f"{name} of shard {self.shard} must have shape (models, {want[0]}, 3), got {x.shape}")
-            bufs = self._buffers.get(name)
-            if bufs is None or len(bufs[0]) < b:
-                bufs = self._buffers[name] = (np.empty(x.shape, np.float64), np.empty(x.shape, np.float32))
-            values[name] = _quantize_into(x, bufs[0][:b], bufs[1][:b], self.meta["encoding"])
-            # checked on the rounded float32 values (half the bytes; NaN and inf survive the rounding)
-            _check_coordinates(name, self.shard, values[name], self.meta["max_abs_mm"])
-        for name, q in values.items():
-            for i in range(0, b, self.chunk):
-                c = q[i : i + self.chunk]
-                if len(c) < self.chunk:  # the array's boundary chunk: zarr stores it whole, fill value 0
-                    c = np.concatenate([c, np.zeros((self.chunk - len(c), *c.shape[1:]), np.float32)])
+            if not np.issubdtype(x.dtype, np.floating):
+                x = x.astype(np.float64)
+            n_chunks = -(-b // self.chunk)  # a partial last chunk is the array's boundary chunk, zero-filled
+            buf = self._buffers.get(name)
+            if buf is None or len(buf) < n_chunks:
+                buf = self._buffers[name] = np.empty((n_chunks, 3, want[0], self.chunk), np.float32)
+            values[name] = buf[:n_chunks]
+            lo, hi, finite = _stored_chunks_nb(x, self.meta["encoding"] == "float32-q10", self.chunk, values[name])
+            # checked on the stored float32 values (NaN and inf survive the rounding)
+            _check_range(name, self.shard, lo, hi, finite, self.meta["max_abs_mm"])
+        for name, chunks in values.items():
+            for j, c in enumerate(chunks):  # c: one inner chunk, already in stored order
                 t0 = time.process_time()
-                data = self._codec.encode(np.ascontiguousarray(c.transpose(CHUNK_ORDER)))
+                data = self._codec.encode(c)
                 self.encode_cpu_s += time.process_time() - t0
-                slot = (self.n_written + i) // self.chunk
+                slot = self.n_written // self.chunk + j
                 self._index[name][slot] = (self._offset[name], len(data))
                 self._files[name].write(data)
                 self._sha[name].update(data)
