@@ -24,14 +24,14 @@ import yaml
 
 
 def model_points(results: Path, model: str, grid: dict, template) -> np.ndarray:
-    from spinecohort.fe.abaqus import read_inp_nodes
+    from spinecohort.fe.export import read_deck_points
     from spinecohort.fe.models import hex_points_checked, parse_model_id
     from spinecohort.mesh.hex_ssm import HexSSM
     from spinecohort.store.zarr_store import weights_of
 
     deck = results / "models" / f"{model}.inp"
     if deck.exists():
-        return read_inp_nodes(deck)[1]
+        return read_deck_points(deck, template)
     i = parse_model_id(model, grid["n_modes"], grid["levels"])
     w = np.asarray(weights_of(i, grid["n_modes"], grid["levels"]), dtype=np.float64)
     pts, report = hex_points_checked(template, HexSSM.load(results / "template" / "hex_ssm.npz"), w)

@@ -1,8 +1,8 @@
 # Adapter: each calibrated parameter at the ends of its published range -> change of every compared ROM.
 import pandas as pd
 
-from spinecohort.fe.abaqus import read_inp_nodes
 from spinecohort.fe.calculix import find_ccx
+from spinecohort.fe.export import read_deck_points
 from spinecohort.figures import rom_sensitivity_figure
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
@@ -11,7 +11,7 @@ from spinecohort.rom.sensitivity import sensitivity
 with to_file(snakemake.log[0]) as log:
     find_ccx()
     template = HexTemplate.load(snakemake.input.template)
-    _, points = read_inp_nodes(snakemake.input.deck)
+    points = read_deck_points(snakemake.input.deck, template)
     rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
     cfg = {"fe": snakemake.params.fe, "rom": rom}
     table = sensitivity(template, points, cfg, snakemake.output.runs, snakemake.params.model)
