@@ -18,10 +18,11 @@ pelvis are fixed in vitro and here: a lumbar model fixes the S1 plate (the botto
 a functional unit fixes its whole lower vertebra (potting).  The moment acts on the top vertebra, potted
 too: one *RIGID BODY of its body and arch anchors (`spinecohort.rom.deck`).
 
-Facet joints (`FacetContact`): a GAPUNI element between the articular-process tips of each joint, closing
-along the joint's textbook normal; a stand-in for surface contact, which the S3 skins cannot provide here.
+Facet joints (`spinecohort.fe.facets`, the same gaps as the exported decks): per joint a GAPUNI joint gap
+and, if configured, an extension stop of the inferior articular process tip on the lamina below; stand-ins for
+surface contact, which the S3 skins cannot provide here.
 
-Limitations (docs/rom.md): facet contact is a point gap, not surface contact; no posterior ligaments or
+Limitations (docs/rom.md): facet contact is point gaps, not surface contact; no posterior ligaments or
 facets between L5 and the sacrum (the template has no sacral anchors); no rib cage (thoracic units).
 """
 
