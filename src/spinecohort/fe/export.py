@@ -132,7 +132,7 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         fibre_angle_deg=float(fib["angle_deg"]),
         ligaments=ligs,
         include_all=bool(fe["include_all"]),
-        facets=FacetContact.from_config(fe["facets"]),
+        facets=FacetContact.from_config(fe.get("facets")),  # None: a release made before facets were exported
     )
 
 
