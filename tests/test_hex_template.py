@@ -91,14 +91,16 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
     counts = {}
     for c in mesh.cells:
         counts[c.type] = counts.get(c.type, 0) + len(c.data)
-    # hexes in two blocks (C3D8, annulus C3D8R), lines = ligaments + connectors
+    # hexes in two blocks (C3D8, annulus C3D8R), lines = ligaments + connectors + facet gaps (GAPUNI)
     n_conn = len(fe.element_blocks["CONNECTORS"][1])
+    n_gaps = len(fe.element_blocks["FACETS"][1])
     assert counts == {
         "hexahedron": len(template.hexes),
         "triangle": len(template.tris),
-        "line": len(template.ligaments) + n_conn,
+        "line": len(template.ligaments) + n_conn + n_gaps,
     }
-    assert len(mesh.points) == template.n_nodes
+    # the template's nodes, then two coincident nodes per gap
+    assert len(mesh.points) == template.n_nodes + 2 * n_gaps
     for name, idx in template.nsets.items():
         assert np.array_equal(np.sort(mesh.point_sets[name]), np.sort(idx)), name
     sizes = [len(c.data) for c in mesh.cells]

@@ -3,6 +3,7 @@ the rom_model / rom_validation rules.  Closed-form cases: a pure moment on an el
 theory, a linear two-block unit's symmetry; the test-config DAG solves one lumbar functional unit (L3-L4)
 nonlinear with tension-only ligaments."""
 
+import json
 import re
 import shutil
 import subprocess
@@ -329,6 +330,8 @@ def test_facet_contact_from_the_config():
     assert fc.angles_deg("L4") == (90.0, 50.0) and fc.angles_deg("T11") == (75.0, pytest.approx(18.25))
     assert -30.0 <= fc.angles_deg("T5")[1] <= -25.0 and 34.0 <= fc.angles_deg("L4")[1] <= 50.0
     assert FacetContact.from_config({**cfg, "enabled": False}) is None
+    # a release's release.json stores the block with its keys sorted (L5 before T1): same contact
+    assert FacetContact.from_config(json.loads(json.dumps(cfg, sort_keys=True))) == fc
     with pytest.raises(ValueError, match="cranial to caudal"):
         FacetContact(transverse_deg=(("L5", 90.0), ("T1", 60.0))).angles_deg("T5")
 

@@ -507,15 +507,16 @@ def read_inp_nodes(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_inp(path: str | Path):
-    """meshio.Mesh of a deck, with SPRINGA elements read as 'line' cells.
+    """meshio.Mesh of a deck, with SPRINGA and GAPUNI elements read as 'line' cells.
 
-    meshio 5.3.5's Abaqus reader does not know SPRINGA and raises on it; it is registered in meshio's
-    type table (an additive, idempotent entry) so ligaments read back as 2-node lines.
+    meshio 5.3.5's Abaqus reader knows neither and raises on them; they are registered in meshio's type
+    table (additive, idempotent entries) so ligaments, connectors and facet gaps read back as 2-node lines.
     """
     import meshio
     from meshio.abaqus import _abaqus
 
-    _abaqus.abaqus_to_meshio_type.setdefault("SPRINGA", "line")
+    for etype in ("SPRINGA", "GAPUNI"):
+        _abaqus.abaqus_to_meshio_type.setdefault(etype, "line")
     return meshio.read(path, file_format="abaqus")
 
 

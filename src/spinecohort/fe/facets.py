@@ -83,11 +83,16 @@ class FacetContact:
         if not cfg or not cfg.get("enabled", True):
             return None
         tip = cfg.get("tip_clearance_mm")
+
+        def anchors(d: dict) -> tuple[tuple[str, float], ...]:
+            # cranial to caudal whatever the mapping's order (a release's JSON has its keys sorted)
+            return tuple(sorted(((str(k), float(v)) for k, v in d.items()), key=lambda a: LEVELS.index(a[0])))
+
         return cls(
             float(cfg["clearance_mm"]),
             float(cfg["stiffness_n_per_mm"]),
-            tuple((str(k), float(v)) for k, v in cfg["transverse_deg"].items()),
-            tuple((str(k), float(v)) for k, v in cfg["frontal_deg"].items()),
+            anchors(cfg["transverse_deg"]),
+            anchors(cfg["frontal_deg"]),
             None if tip is None else float(tip),
             float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
         )
