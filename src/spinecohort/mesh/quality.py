@@ -430,6 +430,27 @@ def _det3_nb(a0, a1, a2, b0, b1, b2, c0, c1, c2):
     return a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
 
 
+@numba.njit(cache=True, inline="always")
+def _centre_sj_nb(P):
+    """(ok, scaled Jacobian at the element centre) of P (8, 3): the determinant of the three principal axes
+    (sums of the four parallel edges) over their lengths; ok False when an axis is degenerate."""
+    x10 = (P[1, 0] - P[0, 0]) + (P[2, 0] - P[3, 0]) + (P[5, 0] - P[4, 0]) + (P[6, 0] - P[7, 0])
+    x11 = (P[1, 1] - P[0, 1]) + (P[2, 1] - P[3, 1]) + (P[5, 1] - P[4, 1]) + (P[6, 1] - P[7, 1])
+    x12 = (P[1, 2] - P[0, 2]) + (P[2, 2] - P[3, 2]) + (P[5, 2] - P[4, 2]) + (P[6, 2] - P[7, 2])
+    x20 = (P[3, 0] - P[0, 0]) + (P[2, 0] - P[1, 0]) + (P[7, 0] - P[4, 0]) + (P[6, 0] - P[5, 0])
+    x21 = (P[3, 1] - P[0, 1]) + (P[2, 1] - P[1, 1]) + (P[7, 1] - P[4, 1]) + (P[6, 1] - P[5, 1])
+    x22 = (P[3, 2] - P[0, 2]) + (P[2, 2] - P[1, 2]) + (P[7, 2] - P[4, 2]) + (P[6, 2] - P[5, 2])
+    x30 = (P[4, 0] - P[0, 0]) + (P[5, 0] - P[1, 0]) + (P[6, 0] - P[2, 0]) + (P[7, 0] - P[3, 0])
+    x31 = (P[4, 1] - P[0, 1]) + (P[5, 1] - P[1, 1]) + (P[6, 1] - P[2, 1]) + (P[7, 1] - P[3, 1])
+    x32 = (P[4, 2] - P[0, 2]) + (P[5, 2] - P[1, 2]) + (P[6, 2] - P[2, 2]) + (P[7, 2] - P[3, 2])
+    l1 = x10 * x10 + x11 * x11 + x12 * x12
+    l2 = x20 * x20 + x21 * x21 + x22 * x22
+    l3 = x30 * x30 + x31 * x31 + x32 * x32
+    if l1 <= VERDICT_DBL_MIN or l2 <= VERDICT_DBL_MIN or l3 <= VERDICT_DBL_MIN:
+        return False, 0.0
+    return True, _det3_nb(x10, x11, x12, x20, x21, x22, x30, x31, x32) / np.sqrt(l1 * l2 * l3)
+
+
 @numba.njit(cache=True)
 def _element_min_sj_nb(P, cn):
     """Scaled Jacobian of one element P (8, 3) (same rules as _scaled_jacobian_P)."""
@@ -446,22 +467,10 @@ def _element_min_sj_nb(P, cn):
             return VERDICT_DBL_MAX
         s = _det3_nb(a0, a1, a2, b0, b1, b2, c0, c1, c2) / np.sqrt(la * lb * lc)
         sj = min(sj, s)
-    x10 = (P[1, 0] - P[0, 0]) + (P[2, 0] - P[3, 0]) + (P[5, 0] - P[4, 0]) + (P[6, 0] - P[7, 0])
-    x11 = (P[1, 1] - P[0, 1]) + (P[2, 1] - P[3, 1]) + (P[5, 1] - P[4, 1]) + (P[6, 1] - P[7, 1])
-    x12 = (P[1, 2] - P[0, 2]) + (P[2, 2] - P[3, 2]) + (P[5, 2] - P[4, 2]) + (P[6, 2] - P[7, 2])
-    x20 = (P[3, 0] - P[0, 0]) + (P[2, 0] - P[1, 0]) + (P[7, 0] - P[4, 0]) + (P[6, 0] - P[5, 0])
-    x21 = (P[3, 1] - P[0, 1]) + (P[2, 1] - P[1, 1]) + (P[7, 1] - P[4, 1]) + (P[6, 1] - P[5, 1])
-    x22 = (P[3, 2] - P[0, 2]) + (P[2, 2] - P[1, 2]) + (P[7, 2] - P[4, 2]) + (P[6, 2] - P[5, 2])
-    x30 = (P[4, 0] - P[0, 0]) + (P[5, 0] - P[1, 0]) + (P[6, 0] - P[2, 0]) + (P[7, 0] - P[3, 0])
-    x31 = (P[4, 1] - P[0, 1]) + (P[5, 1] - P[1, 1]) + (P[6, 1] - P[2, 1]) + (P[7, 1] - P[3, 1])
-    x32 = (P[4, 2] - P[0, 2]) + (P[5, 2] - P[1, 2]) + (P[6, 2] - P[2, 2]) + (P[7, 2] - P[3, 2])
-    l1 = x10 * x10 + x11 * x11 + x12 * x12
-    l2 = x20 * x20 + x21 * x21 + x22 * x22
-    l3 = x30 * x30 + x31 * x31 + x32 * x32
-    if l1 <= VERDICT_DBL_MIN or l2 <= VERDICT_DBL_MIN or l3 <= VERDICT_DBL_MIN:
+    ok, centre = _centre_sj_nb(P)
+    if not ok:
         return VERDICT_DBL_MAX
-    d8 = _det3_nb(x10, x11, x12, x20, x21, x22, x30, x31, x32)
-    return min(sj, d8 / np.sqrt(l1 * l2 * l3))
+    return min(sj, centre)
 
 
 @numba.njit(cache=True)
@@ -711,22 +720,11 @@ def _element_quality_nb(P, e, out):
         ):
             cmax = max(cmax, cs)  # arccos is monotone: only the extreme cosines need it
             cmin = min(cmin, cs)
-    x10 = (P[1, 0] - P[0, 0]) + (P[2, 0] - P[3, 0]) + (P[5, 0] - P[4, 0]) + (P[6, 0] - P[7, 0])
-    x11 = (P[1, 1] - P[0, 1]) + (P[2, 1] - P[3, 1]) + (P[5, 1] - P[4, 1]) + (P[6, 1] - P[7, 1])
-    x12 = (P[1, 2] - P[0, 2]) + (P[2, 2] - P[3, 2]) + (P[5, 2] - P[4, 2]) + (P[6, 2] - P[7, 2])
-    x20 = (P[3, 0] - P[0, 0]) + (P[2, 0] - P[1, 0]) + (P[7, 0] - P[4, 0]) + (P[6, 0] - P[5, 0])
-    x21 = (P[3, 1] - P[0, 1]) + (P[2, 1] - P[1, 1]) + (P[7, 1] - P[4, 1]) + (P[6, 1] - P[5, 1])
-    x22 = (P[3, 2] - P[0, 2]) + (P[2, 2] - P[1, 2]) + (P[7, 2] - P[4, 2]) + (P[6, 2] - P[5, 2])
-    x30 = (P[4, 0] - P[0, 0]) + (P[5, 0] - P[1, 0]) + (P[6, 0] - P[2, 0]) + (P[7, 0] - P[3, 0])
-    x31 = (P[4, 1] - P[0, 1]) + (P[5, 1] - P[1, 1]) + (P[6, 1] - P[2, 1]) + (P[7, 1] - P[3, 1])
-    x32 = (P[4, 2] - P[0, 2]) + (P[5, 2] - P[1, 2]) + (P[6, 2] - P[2, 2]) + (P[7, 2] - P[3, 2])
-    l1 = x10 * x10 + x11 * x11 + x12 * x12
-    l2 = x20 * x20 + x21 * x21 + x22 * x22
-    l3 = x30 * x30 + x31 * x31 + x32 * x32
-    if degenerate or l1 <= VERDICT_DBL_MIN or l2 <= VERDICT_DBL_MIN or l3 <= VERDICT_DBL_MIN:
+    ok, centre = _centre_sj_nb(P)
+    if degenerate or not ok:
         out[0] = VERDICT_DBL_MAX
     else:
-        out[0] = min(sj, _det3_nb(x10, x11, x12, x20, x21, x22, x30, x31, x32) / np.sqrt(l1 * l2 * l3))
+        out[0] = min(sj, centre)
     out[1] = -VERDICT_DBL_MAX if amax <= VERDICT_DBL_MIN else amin / amax
     # u-edges (v, w) = (0,0), (1,0), (0,1), (1,1); v-edges (u, w) in the same order; w-edges (u, v) likewise
     for d in range(3):
