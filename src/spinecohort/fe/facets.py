@@ -138,21 +138,33 @@ def mean_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(n, x), n], 1)
 
 
+def _joints(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[tuple[str, str, float]]]:
+    """The frames (`vertebra_frame`) of the vertebrae of `pairs` and, per joint, (upper vertebra, lower
+    vertebra, side: +1 right / -1 left of the upper vertebra's frame)."""
+    owner = arch_owner(template)
+    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs.ravel()}}
+    joints = []
+    for iap, sap in pairs:
+        up, lo = owner[int(iap)], owner[int(sap)]
+        frame, centre = frames[up]
+        joints.append((up, lo, 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0))
+    return frames, joints
+
+
 def facet_gaps(
     template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
 ) -> list[tuple[Gap, str]]:
     """(gap, elset name) of each joint gap, in the order of `pairs`; direction from the SAP towards the IAP."""
-    owner = arch_owner(template)
-    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs[:, 0]}}
-    out = []
-    for iap, sap in pairs:
-        up, lo = owner[int(iap)], owner[int(sap)]
-        frame, centre = frames[up]
-        side = 1.0 if (points[iap] - centre) @ frame[:, 0] > 0 else -1.0  # +1 right
-        n = facets.normal(up, frame, side)
-        name = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
-        out.append(((facets.clearance_mm, tuple(map(float, n)), facets.stiffness_n_per_mm), name))
-    return out
+    frames, joints = _joints(template, points, pairs)
+    return [
+        (
+            (facets.clearance_mm, tuple(map(float, facets.normal(up, frames[up][0], side))), facets.stiffness_n_per_mm),
+            f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}",
+        )
+        for up, lo, side in joints
+    ]
 
 
 def tip_gaps(
@@ -161,16 +173,14 @@ def tip_gaps(
     """(gap, elset name) of each joint's extension stop: the IAP tip of the upper vertebra coming down onto
     the lamina of the lower one.  Direction: the lower vertebra's cranial axis (node 1 on the lower vertebra,
     node 2 at the IAP tip), so the gap closes when the tip moves caudally."""
-    owner = arch_owner(template)
-    frames = {v: vertebra_frame(template, points, v) for v in {owner[int(i)] for i in pairs.ravel()}}
-    out = []
-    for iap, sap in pairs:
-        up, lo = owner[int(iap)], owner[int(sap)]
-        frame_up, centre_up = frames[up]
-        side = "R" if (points[iap] - centre_up) @ frame_up[:, 0] > 0 else "L"
-        gap = (float(facets.tip_clearance_mm), tuple(map(float, frames[lo][0][:, 2])), facets.tip_stiffness_n_per_mm)
-        out.append((gap, f"FACET_TIP_{up}{lo}_{side}"))
-    return out
+    frames, joints = _joints(template, points, pairs)
+    return [
+        (
+            (float(facets.tip_clearance_mm), tuple(map(float, frames[lo][0][:, 2])), facets.tip_stiffness_n_per_mm),
+            f"FACET_TIP_{up}{lo}_{'R' if side > 0 else 'L'}",
+        )
+        for up, lo, side in joints
+    ]
 
 
 def facet_nodes(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact) -> FacetNodes:
