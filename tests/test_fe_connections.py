@@ -96,10 +96,10 @@ def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(t
     assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n
 
 
-def test_exported_annulus_is_c3d8r_and_renumbered_hexes_keep_their_connectivity(template):
+def test_exported_disc_is_c3d8r_and_renumbered_hexes_keep_their_connectivity(template):
     fe = fe_model(template)
-    (t_hex, hexes), (t_af, af) = fe.element_blocks["HEXES"], fe.element_blocks["HEXES_AF"]
-    n_af = sum(len(v) for k, v in template.elsets.items() if k.endswith("_AF"))
+    (t_hex, hexes), (t_af, af) = fe.element_blocks["HEXES"], fe.element_blocks["HEXES_DISC"]
+    n_af = sum(len(v) for k, v in template.elsets.items() if k.endswith(("_AF", "_NP")))
     assert (t_hex, t_af) == ("C3D8", "C3D8R") and len(af) == n_af and len(hexes) + n_af == len(template.hexes)
     both = np.concatenate([hexes, af])
     for name, kind in template.elset_kind.items():

@@ -250,16 +250,18 @@ def test_rom_submodel_of_a_functional_unit(template):
     m = extract_rom_model(template, template.nodes, "L3", "L4")
     n2, nq = len(template.grid.nodes), len(template.grid.quads)
     res = template.resolution
-    # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes; the annulus
-    # hexes in their own C3D8R block, the rest C3D8
-    n_af = len(template.elsets["D_L3L4_AF"])
-    assert m.fe.element_blocks["HEXES"][0] == "C3D8" and m.fe.element_blocks["HEXES_AF"] == (
+    # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes; the annulus and
+    # nucleus hexes in their own C3D8R block, the rest C3D8
+    n_af = len(template.elsets["D_L3L4_AF"]) + len(template.elsets["D_L3L4_NP"])
+    assert m.fe.element_blocks["HEXES"][0] == "C3D8" and m.fe.element_blocks["HEXES_DISC"] == (
         "C3D8R",
-        m.fe.element_blocks["HEXES_AF"][1],
+        m.fe.element_blocks["HEXES_DISC"][1],
     )
-    assert len(m.fe.element_blocks["HEXES_AF"][1]) == n_af
+    assert len(m.fe.element_blocks["HEXES_DISC"][1]) == n_af
     assert len(m.fe.element_blocks["HEXES"][1]) + n_af == nq * (2 * res.body_layers + res.disc_layers + 2)
-    assert set(m.fe.element_sets["D_L3L4_AF"]) == set(range(len(m.fe.element_blocks["HEXES"][1]), len(m.hex_elements)))
+    disc_ids = set(range(len(m.fe.element_blocks["HEXES"][1]), len(m.hex_elements)))
+    assert set(m.fe.element_sets["D_L3L4_AF"]) | set(m.fe.element_sets["D_L3L4_NP"]) == disc_ids
+    assert not set(m.fe.element_sets["D_L3L4_CEP"]) & disc_ids
     # ligaments L3-L4: SSL, ISL, 2 LF, 2 CL, 2 ITL, PLL, ALL = 10, one elset and table each
     assert m.ligament_groups == {"SSL": 1, "ISL": 1, "LF": 2, "CL": 2, "ITL": 2, "PLL": 1, "ALL": 1}
     assert len(m.fe.element_blocks["LIGAMENTS"][1]) == 10
@@ -424,7 +426,7 @@ def test_two_segments_in_series_rotate_as_each_does_alone(template, tmp_path):
     # model as alone.  With C3D8R everywhere ccx 2.20 failed this (L3-L4: 4.75 deg alone, 2.6 deg inside
     # L2-L4 on the default mean; docs/rom.md); the configured elements (C3D8, annulus C3D8R) pass to 0.2 %.
     # Discs alone (no ligaments, no facets) at 7.5 N.m axial rotation, test-config mean.
-    kw = dict(ligament_groups=(), hex_type="C3D8", annulus_hex_type="C3D8R")
+    kw = dict(ligament_groups=(), hex_type="C3D8", disc_hex_type="C3D8R")
     alone = run_case(
         extract_rom_model(template, template.nodes, "L3", "L4", **kw),
         "axial_left",
@@ -507,7 +509,7 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
         "*ELASTIC\n12000.0, 0.3",
         "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.0111",
         "*ELEMENT, TYPE=C3D8, ELSET=HEXES",
-        "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_AF",
+        "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_DISC",
         "*USER MATERIAL, CONSTANTS=10",
         "SYSTEM=CYLINDRICAL",
         "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",

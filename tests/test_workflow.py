@@ -78,7 +78,7 @@ def test_dag_produces_every_stage_output(test_run):
     contact = transfer[transfer["disc_contact"] != "none"].set_index("method")
     assert contact.loc["smooth", "models_with_inverted"] == 0 and contact.loc["smooth", "min_scaled_jacobian"] > 0
     deck = Path(L.template_deck).read_text()
-    assert "*ELEMENT, TYPE=C3D8, ELSET=HEXES\n" in deck and "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_AF\n" in deck
+    assert "*ELEMENT, TYPE=C3D8, ELSET=HEXES\n" in deck and "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_DISC\n" in deck
     assert "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck and "*SPRING, ELSET=CONN_ARCH_L3, NONLINEAR" in deck
     for rule in (
         "synthetic_cohort",

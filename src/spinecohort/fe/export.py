@@ -64,7 +64,7 @@ class FEMaterials:
     annulus_d1_per_mpa: float = 0.688  # calibrated (config/config.yaml)
     fibre_k1_mpa: float = 1.51
     fibre_k2: float = 11.0
-    fibre_angle_deg: float = 32.5  # to the transverse plane, +- (two families)
+    fibre_angle_deg: float = 40.0  # to the transverse plane, +- (two families)
     ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
     include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
     facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
@@ -102,7 +102,11 @@ DEFAULT_LIGAMENTS = {
 DEFAULT_MATERIALS = FEMaterials()
 ANNULUS_MATERIAL = "ELASTIC_FIBER_AF"  # ccx selects its built-in law by this name prefix
 #: the annulus element of every deck: ccx 2.20's ELASTIC_FIBER law aborts with C3D8/C3D8I (docs/rom.md)
-ANNULUS_HEX_TYPE = "C3D8R"
+DISC_HEX_TYPE = "C3D8R"
+#: hex sets (by name suffix) of the disc soft tissue, which get ``disc_hex_type``: the annulus (ccx 2.20's fibre
+#: law aborts with C3D8/C3D8I) and the nucleus (a fully integrated C3D8 locks the nearly incompressible nucleus in
+#: bending: 2.5x the stiffness of C3D20R and C3D8I, docs/rom.md "Element choice")
+DISC_TYPE_TISSUES: tuple[str, ...] = ("_AF", "_NP")
 #: node sets by which an exported deck is fixed, in order of preference
 FIXED_SETS = ("PELVIS", "EP_SUP_S1")
 
@@ -215,20 +219,20 @@ def fe_model(
     include_all: bool | None = None,
     heading: str = "spinecohort model",
     materials: FEMaterials | None = None,
-    annulus_hex_type: str | None = ANNULUS_HEX_TYPE,
+    disc_hex_type: str | None = DISC_HEX_TYPE,
     connectors: bool = True,
 ) -> FEModel:
     """The template as an FEModel with the given node coordinates (default: the template's own): one
     connected mechanical body (`spinecohort.fe.connections`).
 
-    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates, nucleus: `hex_type`), ``HEXES_AF``
-    (the annulus: `annulus_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's fibre law aborts with
-    C3D8/C3D8I), ``SURFACES`` (S3 skins), ``LIGAMENTS`` (tension-only SPRINGA), ``CONNECTORS`` (linear
+    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates: `hex_type`), ``HEXES_DISC``
+    (annulus and nucleus, `DISC_TYPE_TISSUES`: `disc_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's
+    fibre law aborts with C3D8/C3D8I, and C3D8 locks the nearly incompressible nucleus), ``SURFACES`` (S3 skins), ``LIGAMENTS`` (tension-only SPRINGA), ``CONNECTORS`` (linear
     SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the facet nodes on their vertebra), ``FACETS``
     (GAPUNI facet-joint gaps, `spinecohort.fe.facets`; element sets ``FACET_*``).  Nodes: the template's
-    (ids 1..N, template order), then the facet nodes (materials.facets None: none).  Hex elements are therefore numbered non-annulus first, then annulus,
+    (ids 1..N, template order), then the facet nodes (materials.facets None: none).  Hex elements are therefore numbered bone and endplates first, then disc soft tissue,
     each in template order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model).
-    annulus_hex_type None: the annulus in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
+    disc_hex_type None: the disc in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
     (a deck of loose parts, for pictures only).
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
     """
@@ -243,17 +247,17 @@ def fe_model(
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
-    annulus = np.zeros(len(template.hexes), bool)
-    if annulus_hex_type is not None and annulus_hex_type != hex_type:
+    disc = np.zeros(len(template.hexes), bool)
+    if disc_hex_type is not None and disc_hex_type != hex_type:
         for name, idx in template.elsets.items():
-            if template.elset_kind[name] == "hex" and name.endswith("_AF"):
-                annulus[idx] = True
-    hex_order = np.concatenate([np.flatnonzero(~annulus), np.flatnonzero(annulus)])
+            if template.elset_kind[name] == "hex" and name.endswith(DISC_TYPE_TISSUES):
+                disc[idx] = True
+    hex_order = np.concatenate([np.flatnonzero(~disc), np.flatnonzero(disc)])
     pos_of_hex = np.empty(len(template.hexes), dtype=np.int64)
     pos_of_hex[hex_order] = np.arange(len(hex_order))
-    blocks = {"HEXES": (hex_type, template.hexes[~annulus])}
-    if annulus.any():
-        blocks["HEXES_AF"] = (annulus_hex_type, template.hexes[annulus])
+    blocks = {"HEXES": (hex_type, template.hexes[~disc])}
+    if disc.any():
+        blocks["HEXES_DISC"] = (disc_hex_type, template.hexes[disc])
     blocks["SURFACES"] = ("S3", template.tris)
     blocks["LIGAMENTS"] = ("SPRINGA", template.ligaments[lig_keep])
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}

@@ -24,10 +24,12 @@ from spinecohort.rom.deck import PLANES
 PLANE_OF = {c: p for p, cases in PLANES.items() for c in cases} | {p: p for p in PLANES}
 
 
-def model_value_deg(table: pd.DataFrame, segment: str, motion: str, side: str, mode: str) -> float:
+def model_value_deg(
+    table: pd.DataFrame, segment: str, motion: str, side: str, mode: str, variant: str = "intact"
+) -> float:
     """Our ROM (deg) in a reference's convention: one load case, or a plane's full range (sum of both
     sides) / one-side mean.  NaN if the table lacks a needed load case."""
-    rows = table[(table["segment"] == segment) & (table["mode"] == mode) & (table["variant"] == "intact")]
+    rows = table[(table["segment"] == segment) & (table["mode"] == mode) & (table["variant"] == variant)]
     if "load_fraction" in rows:  # a case stopped short of the full moment is not comparable
         rows = rows[rows["load_fraction"] >= 1.0 - 1e-6]
     by_case = dict(zip(rows["load_case"], rows["rom_deg"]))
@@ -69,17 +71,30 @@ def validate(
     rib_correction: dict | None = None,
     seed_acceptance_sd: float = 2.0,
 ) -> pd.DataFrame:
-    """One row per reference and extraction mode that has its segment: our value, the accepted interval of
-    the calibration criterion (`accepted_interval` with ``acceptance_sd`` and ``rib_correction``) and of the
-    seed's (``seed_acceptance_sd``, raw ranges), in_range / in_range_seed, and the distance from the
-    criterion's centre.  References at another moment are listed with in_range empty (not judged)."""
+    """One row per reference and extraction (mode, variant) that has its segment: our value, the accepted
+    interval of the calibration criterion (`accepted_interval` with ``acceptance_sd`` and ``rib_correction``)
+    and of the seed's (``seed_acceptance_sd``, raw ranges), in_range / in_range_seed, and the distance from
+    the criterion's centre.  The ``rib_heads`` variant (units solved with the specimens' rib heads,
+    `spinecohort.rom.ribs`) is judged against the raw ranges: it has what the specimens had.  References at
+    another moment are listed with in_range empty (not judged)."""
     rows = []
+    variants = set(table["variant"]) if "variant" in table else {"intact"}
     for ref in references:
-        for mode in ("lumbar", "unit"):
-            if not ((table["segment"] == ref["segment"]) & (table["mode"] == mode)).any():
+        for mode, variant in (("lumbar", "intact"), ("unit", "intact"), ("unit", "rib_heads")):
+            here = (table["segment"] == ref["segment"]) & (table["mode"] == mode)
+            if variant not in variants or not here.any():
                 continue
-            ours = model_value_deg(table, ref["segment"], ref["motion"], ref["side"], mode)
-            low, high, centre, criterion = accepted_interval(ref, acceptance_sd, rib_correction)
+            solved = variant
+            if variant == "rib_heads":
+                if not ref.get("rib_heads"):
+                    continue
+                # a disc no rib bridges (T10-T11: rib 11 articulates with T11 only) was tested as the model is
+                solved = variant if (here & (table["variant"] == variant)).any() else "intact"
+            ours = model_value_deg(table, ref["segment"], ref["motion"], ref["side"], mode, solved)
+            corr = rib_correction if variant == "intact" else None
+            low, high, centre, criterion = accepted_interval(ref, acceptance_sd, corr)
+            if variant == "rib_heads":
+                criterion += " (model with rib heads)" if solved == variant else " (no rib bridges this disc)"
             s_low, s_high, _, _ = accepted_interval(ref, seed_acceptance_sd, None)
             judged = abs(ref["moment_nmm"] - moment_nmm) < 1e-6 and np.isfinite(ours)
             rows.append(
@@ -88,6 +103,7 @@ def validate(
                     "motion": ref["motion"],
                     "side": ref["side"],
                     "mode": mode,
+                    "variant": variant,
                     "model_deg": round(ours, 3),
                     "ref_statistic": ref["statistic"],
                     "ref_value": ref.get("value"),
@@ -158,6 +174,18 @@ def validate_from_config(table: pd.DataFrame, rom: dict) -> pd.DataFrame:
     )
 
 
+def with_rib_heads(val: pd.DataFrame) -> pd.DataFrame | None:
+    """The comparisons as the specimens were tested: every intact row, except that a unit row whose
+    (segment, motion) was also solved with the rib heads is replaced by that row.  None without such rows."""
+    if "variant" not in val or not (val["variant"] == "rib_heads").any():
+        return None
+    ribs = val[val["variant"] == "rib_heads"]
+    have = set(zip(ribs["segment"], ribs["motion"]))
+    intact = val[val["variant"] == "intact"]
+    keep = ~((intact["mode"] == "unit") & [k in have for k in zip(intact["segment"], intact["motion"])])
+    return pd.concat([intact[keep], ribs], ignore_index=True)
+
+
 def validation_markdown(val: pd.DataFrame) -> str:
     """The validation table as the Markdown docs/rom.md shows (so the documented table is the code's own
     output): ours, reference, both criteria, in range, distance from the criterion's centre."""
@@ -179,18 +207,24 @@ def validation_markdown(val: pd.DataFrame) -> str:
     def num(v: float, fmt: str) -> str:
         return "—" if not np.isfinite(v) else format(v, fmt)
 
-    for r in val.itertuples():
+    variant = val["variant"] if "variant" in val else pd.Series("intact", index=val.index)
+    for r, v in zip(val.itertuples(), variant):
+        mode = r.mode + (" + rib heads" if v == "rib_heads" else "")
         lines.append(
-            f"| {r.segment} | {r.motion} | {r.side} | {r.mode} | {num(r.model_deg, '.2f')} | {ref_text(r)} | {r.criterion} | "
+            f"| {r.segment} | {r.motion} | {r.side} | {mode} | {num(r.model_deg, '.2f')} | {ref_text(r)} | {r.criterion} | "
             f"{r.accept_low:.2f}–{r.accept_high:.2f} | {yes(r.in_range)} | {r.seed_low:.2f}–{r.seed_high:.2f} | "
             f"{yes(r.in_range_seed)} | {num(r.distance_deg, '+.2f')} |"
         )
-    judged = val["in_range"].notna()
-    short = int((~judged).sum())
     lines.append("")
-    lines.append(
-        f"In range: {int(val.loc[judged, 'in_range'].astype(bool).sum())} of {int(judged.sum())} judged "
-        f"(seed criterion: {int(val.loc[judged, 'in_range_seed'].astype(bool).sum())})"
-        + (f"; {short} not judged (a load case short of the full moment, or another moment)." if short else ".")
-    )
+    for label, sub in (("", val[variant == "intact"]), ("with rib heads", with_rib_heads(val))):
+        if label and sub is None:
+            continue
+        judged = sub["in_range"].notna()
+        short = int((~judged).sum())
+        lines.append(
+            (f"In range, {label} in the thoracic units (raw ranges): " if label else "In range: ")
+            + f"{int(sub.loc[judged, 'in_range'].astype(bool).sum())} of {int(judged.sum())} judged "
+            f"(seed criterion: {int(sub.loc[judged, 'in_range_seed'].astype(bool).sum())})"
+            + (f"; {short} not judged (a load case short of the full moment, or another moment)." if short else ".")
+        )
     return "\n".join(lines) + "\n"

@@ -21,10 +21,12 @@ from spinecohort.store.zarr_store import model_id, model_name
 
 def mode_rom_config(rom: dict, report_keys=()) -> dict:
     """The ``rom`` block of a mode-study model: the functional units ``rom.mode_units`` alone (no lumbar
-    model, no ALL run), the solver settings unchanged, the comparison keys (`report_keys`) left out."""
+    model, no ALL run, no rib heads), the solver settings unchanged, the comparison keys (`report_keys`) left
+    out."""
     return {
         **{k: v for k, v in rom.items() if k not in report_keys and k != "mode_units"},
         "lumbar": {**rom["lumbar"], "enabled": False},
+        "rib_heads": {**rom.get("rib_heads", {}), "enabled": False},
         "units": list(rom["mode_units"]),
         "all_effect": False,
     }

@@ -19,6 +19,7 @@ from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.deck import LOAD_CASES, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
+from spinecohort.rom.ribs import RIB_SEGMENTS, RibHeads
 from spinecohort.rom.submodel import (
     RomError,
     RomModel,
@@ -178,7 +179,7 @@ class Settings:
     moment_nmm: float = 7500.0
     load_cases: tuple[str, ...] = tuple(LOAD_CASES)
     hex_type: str = "C3D8"
-    annulus_hex_type: str = "C3D8R"
+    disc_hex_type: str = "C3D8R"  # annulus and nucleus (docs/rom.md "Element choice")
     reference_force_n: float | None = 500.0
     nlgeom: bool = True
     initial_increment: float = 0.05
@@ -190,6 +191,8 @@ class Settings:
     all_effect: bool = True
     threads: int = 2
     timeout_s: float = 7200.0
+    #: the specimens' rib heads (`spinecohort.rom.ribs`): units they bridge are also solved with them
+    rib_heads: RibHeads | None = None
 
     @classmethod
     def from_config(cls, block: dict) -> Settings:
@@ -197,8 +200,10 @@ class Settings:
         names = {f.name for f in dataclasses.fields(cls)}
         p = {k: v for k, v in block.items() if k in names}
         lumbar = p.pop("lumbar")
+        ribs = RibHeads.from_config(p.pop("rib_heads", None))
         return cls(
             **{k: v for k, v in p.items() if k not in ("units", "load_cases")},
+            rib_heads=ribs,
             load_cases=tuple(p["load_cases"]),
             lumbar=(lumbar["top"], lumbar["bottom"]) if lumbar["enabled"] else None,
             units=tuple(parse_unit(u) for u in p["units"]),
@@ -251,7 +256,7 @@ def solve_model(
         kw = dict(
             materials=mats,
             hex_type=cfg.hex_type,
-            annulus_hex_type=cfg.annulus_hex_type,
+            disc_hex_type=cfg.disc_hex_type,
             facets=mats.facets,
         )
         variants = [
@@ -275,6 +280,21 @@ def solve_model(
                     ),
                 )
             )
+        if cfg.rib_heads is not None and mode == "unit" and (top, bottom) in RIB_SEGMENTS:
+            variants.append(
+                (
+                    "rib_heads",
+                    extract_rom_model(
+                        template,
+                        points,
+                        top,
+                        bottom,
+                        ribs=cfg.rib_heads,
+                        heading=f"{model_id} ROM {mode} {top}-{bottom} with rib heads",
+                        **kw,
+                    ),
+                )
+            )
         for variant, model in variants:
             msj = check_elements(model)
             log.info(
@@ -289,11 +309,10 @@ def solve_model(
                 model.ligament_groups,
                 msj,
             )
-            cases = cfg.load_cases if variant == "intact" else ["extension"]
+            cases = ["extension"] if variant == "no_ALL" else cfg.load_cases
+            suffix = {"intact": "", "no_ALL": "_noALL", "rib_heads": "_ribs"}[variant]
             for case in cases:
-                jobs.append(
-                    (mode, variant, model, case, sub, f"rom_{case}" + ("" if variant == "intact" else "_noALL"))
-                )
+                jobs.append((mode, variant, model, case, sub, f"rom_{case}{suffix}"))
 
     def run(job):
         mode, variant, model, case, sub, name = job

@@ -67,10 +67,12 @@ def variants(cfg: dict) -> list[tuple[str, str, float, dict]]:
 
 
 def unit_rom_config(rom: dict) -> dict:
-    """The ``rom`` block restricted to the sensitivity's functional units (no lumbar model, no ALL run)."""
+    """The ``rom`` block restricted to the sensitivity's functional units (no lumbar model, no ALL run, no
+    rib heads: the sensitivity is that of the rib-free model the exported decks are)."""
     return {
         **rom,
         "lumbar": {**rom["lumbar"], "enabled": False},
+        "rib_heads": {**rom.get("rib_heads", {}), "enabled": False},
         "units": rom["sensitivity"]["units"],
         "all_effect": False,
     }

@@ -6,8 +6,9 @@ Units: mm, N, N.mm, degrees.
 
 What a ROM model contains (`extract_rom_model`): the conforming hex column of the bodies and the discs
 between them, every ligament whose two ends lie on the kept vertebrae and (optionally) one facet-joint gap
-element per joint.  Elements: C3D8 for bone, cartilage endplates and nucleus, C3D8R for the annulus
-(docs/rom.md: C3D8R everywhere adds no compliance in series; C3D8/C3D8I abort ccx 2.20's fibre law).
+element per joint.  Elements: C3D8 for bone and cartilage endplates, C3D8R for the disc soft tissue
+(docs/rom.md "Element choice": C3D8/C3D8I abort ccx 2.20's fibre law in the annulus, and a fully integrated
+C3D8 locks the nearly incompressible nucleus in bending).
 The posterior elements are S3 skins in the template and share no node with the hex bodies; bone is ~10^4
 times stiffer than disc and ligament, so each posterior arch is modelled as rigid: a stiff truss joins its
 ligament/facet anchor nodes to each other and to the body's posterior cortical-shell nodes between its
@@ -44,6 +45,7 @@ from spinecohort.fe.connections import (
 )
 from spinecohort.fe.export import (
     DEFAULT_MATERIALS,
+    DISC_TYPE_TISSUES,
     FEMaterials,
     disc_orientations,
     hex_section,
@@ -52,10 +54,9 @@ from spinecohort.fe.export import (
 )
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
+from spinecohort.rom.ribs import RibHeads, rib_head_nodes, spring_table
 
 COLUMN = LEVELS + ("S1",)
-#: hex sets (by name suffix) that get ``annulus_hex_type``
-ANNULUS_TYPE_TISSUES: tuple[str, ...] = ("_AF",)
 
 
 class RomError(RuntimeError):
@@ -111,16 +112,18 @@ def extract_rom_model(
     include_all: bool | None = None,
     heading: str = "",
     ligament_groups: tuple[str, ...] | None = None,
-    annulus_hex_type: str | None = "C3D8R",
+    disc_hex_type: str | None = "C3D8R",
     facets: FacetContact | None = None,
+    ribs: RibHeads | None = None,
 ) -> RomModel:
     """The ROM submodel of vertebrae ``top``..``bottom`` (see the module docstring) with the model's
     coordinates ``points`` (N, 3) mm in template node order.
 
-    hex_type: element of bone, cartilage endplates and nucleus; annulus_hex_type: element of the annulus
+    hex_type: element of bone and cartilage endplates; disc_hex_type: element of the annulus and the nucleus
     (None: the same as hex_type); see docs/rom.md for why they differ.
     ligament_groups: the groups to keep (default all, ALL per ``include_all``); () = discs alone.
-    facets: facet-joint contact as one GAPUNI element per facet joint (`FacetContact`); None = no contact."""
+    facets: facet-joint contact as one GAPUNI element per facet joint (`FacetContact`); None = no contact.
+    ribs: the specimens' rib heads as springs (`spinecohort.rom.ribs`); None = none (a spine without ribs)."""
     mats = DEFAULT_MATERIALS if materials is None else materials
     include_all = mats.include_all if include_all is None else include_all
     points = np.asarray(points, dtype=np.float64)
@@ -152,8 +155,13 @@ def extract_rom_model(
     # facet joints: the capsular-ligament anchors (IAP tip of the upper vertebra, SAP tip of the lower one) of
     # every segment in the model (`spinecohort.fe.facets`)
     joints = facet_pairs(template, allowed) if facets is not None else np.zeros((0, 2), dtype=np.int64)
-    # arch anchors actually used, per vertebra
+    segments = [(u, lo_) for u, lo_ in zip(bones[:-1], bones[1:])]
+    rn = rib_head_nodes(template, points, segments, ribs) if ribs is not None else None
+    # arch anchors actually used, per vertebra (ligament ends, and the transverse-process tips of the ribs)
     anchors = {v: np.intersect1d(arch[v], ligs.ravel()) for v in bones}
+    if rn is not None:
+        for v, tips in rn.tp_tips.items():
+            anchors[v] = np.union1d(anchors[v], tips)
     surf = np.unique(np.concatenate([np.zeros(0, np.int64), *anchors.values()]))
     source = np.concatenate([hex_nodes, surf])
     new_of = np.full(len(template.nodes), -1, dtype=np.int64)
@@ -170,20 +178,26 @@ def extract_rom_model(
             extra_tied[v] = first_new + ix
         facet_conn = first_new + fn.gaps
         source = np.concatenate([source, np.full(len(fn.points), -1)])
+    rib_conn = np.zeros((0, 2), dtype=np.int64)
+    if rn is not None and len(rn.points):
+        first_new = len(pts)
+        pts = np.concatenate([pts, rn.points])
+        rib_conn = np.stack([first_new + rn.springs[:, 0], new_of[rn.springs[:, 1]]], 1)
+        source = np.concatenate([source, np.full(len(rn.points), -1)])
 
-    # annulus hexes last, in their own block when their element type differs
-    annulus = np.zeros(len(template.hexes), bool)
+    # disc soft-tissue hexes (annulus, nucleus) last, in their own block when their element type differs
+    disc = np.zeros(len(template.hexes), bool)
     for name, idx in template.elsets.items():
-        if template.elset_kind[name] == "hex" and name.endswith(ANNULUS_TYPE_TISSUES):
-            annulus[idx] = True
-    annulus_hex_type = annulus_hex_type or hex_type
-    if annulus_hex_type != hex_type:
-        hex_ids = np.concatenate([hex_ids[~annulus[hex_ids]], hex_ids[annulus[hex_ids]]])
+        if template.elset_kind[name] == "hex" and name.endswith(DISC_TYPE_TISSUES):
+            disc[idx] = True
+    disc_hex_type = disc_hex_type or hex_type
+    if disc_hex_type != hex_type:
+        hex_ids = np.concatenate([hex_ids[~disc[hex_ids]], hex_ids[disc[hex_ids]]])
     hexes = new_of[template.hexes[hex_ids]]
     lig_conn = new_of[ligs]
-    if annulus_hex_type != hex_type:
-        n_af = int(annulus[hex_ids].sum())
-        blocks = {"HEXES": (hex_type, hexes[:-n_af]), "HEXES_AF": (annulus_hex_type, hexes[-n_af:])}
+    if disc_hex_type != hex_type:
+        n_disc = int(disc[hex_ids].sum())
+        blocks = {"HEXES": (hex_type, hexes[:-n_disc]), "HEXES_DISC": (disc_hex_type, hexes[-n_disc:])}
     else:
         blocks = {"HEXES": (hex_type, hexes)}
     elsets: dict[str, np.ndarray] = {}
@@ -262,6 +276,13 @@ def extract_rom_model(
             elsets[f"ARCH_{v}"] = np.arange(first, first + len(p))
             sections.append(Section(elset=f"ARCH_{v}", spring_force_elongation=CONNECTOR_TABLE))
             first += len(p)
+    if len(rib_conn):
+        first = sum(len(c) for _, c in blocks.values())
+        blocks["RIBS"] = ("SPRINGA", rib_conn)
+        for i, (g, k) in enumerate(zip(rn.spring_groups, rn.stiffness)):
+            elsets[f"{g}_{i + 1}"] = np.array([first + i])
+            sections.append(Section(elset=f"{g}_{i + 1}", spring_force_elongation=spring_table(k)))
+        lig_counts["RIB_HEAD"] = len(rn.points)
     fe = FEModel(
         nodes=pts,
         element_blocks=blocks,
