@@ -91,7 +91,7 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
     counts = {}
     for c in mesh.cells:
         counts[c.type] = counts.get(c.type, 0) + len(c.data)
-    # hexes in two blocks (C3D8, annulus C3D8R), lines = ligaments + connectors + facet gaps (GAPUNI)
+    # hexes in two blocks (C3D8, annulus and nucleus C3D8R), lines = ligaments + connectors + facet gaps (GAPUNI)
     n_conn = len(fe.element_blocks["CONNECTORS"][1])
     n_gaps = len(fe.element_blocks["FACETS"][1])
     assert counts == {

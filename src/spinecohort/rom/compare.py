@@ -182,7 +182,7 @@ def with_rib_heads(val: pd.DataFrame) -> pd.DataFrame | None:
     ribs = val[val["variant"] == "rib_heads"]
     have = set(zip(ribs["segment"], ribs["motion"]))
     intact = val[val["variant"] == "intact"]
-    keep = ~((intact["mode"] == "unit") & [k in have for k in zip(intact["segment"], intact["motion"])])
+    keep = ~((intact["mode"] == "unit") & np.array([k in have for k in zip(intact["segment"], intact["motion"])]))
     return pd.concat([intact[keep], ribs], ignore_index=True)
 
 
