@@ -518,6 +518,29 @@ def test_two_segments_in_series_rotate_as_each_does_alone(template, tmp_path):
 
 
 @needs_ccx
+def test_disc_element_does_not_lock_a_nearly_incompressible_layer_in_bending(tmp_path):
+    # The nucleus is nearly incompressible (nu 0.4992 here: E 0.9 MPa = 3 G, K ~ 190 MPa as the calibrated
+    # nucleus).  A bonded layer 20 x 20 x 4 mm, base fixed, top rigid, tilted by 100 N.mm (linear): closed-form
+    # bounds of its tilt stiffness are E I / h = 0.9 * (20 * 20^3 / 12) / 4 = 3000 N.mm/rad (no pressure) and,
+    # adding the pressure of a bonded incompressible strip (lubrication, 8 G b^5 L / (15 h^3), b = 10, L = 20),
+    # 3000 + 5000 = 8000 (a square lets the material escape both ways, so less).  The converged mesh (C3D8I,
+    # 16 x 16 x 8) gives ~7400; the disc element C3D8R at the template's coarse density (4 x 4 x 2) agrees to
+    # ~7 %, while a fully integrated C3D8 locks: ~24x too stiff (measured 170,500 N.mm/rad; docs/rom.md).
+    mat = [LinearElastic("NP", 0.9, 0.4992)]
+
+    def stiffness(etype, nx, nz):
+        m = block_rom_model(["NP"], mat, etype=etype, nx=nx, nz_per=(nz,), lengths=(4.0,), side=20.0)
+        r = run_case(m, "extension", tmp_path / f"{etype}_{nx}", moment_nmm=100.0, nlgeom=False)
+        (k,) = r.rotations_deg
+        return 100.0 / np.radians(r.rotations_deg[k][0])
+
+    converged = stiffness("C3D8I", 16, 8)
+    assert 3000.0 < converged < 8000.0
+    assert stiffness("C3D8R", 4, 2) == pytest.approx(converged, rel=0.15)
+    assert stiffness("C3D8", 4, 2) > 10.0 * 8000.0
+
+
+@needs_ccx
 def test_pure_moment_on_elastic_column_matches_beam_theory(tmp_path):
     # 10 x 10 x 40 mm column, E 12 GPa, nu 0.3, clamped base, 7.5 N.m through the rigid top face's ROT NODE:
     # theta = M L / (E I) = 7500 * 40 / (12000 * 10^4 / 12) = 0.0300 rad = 1.7189 deg.  C3D8I with a clamped
