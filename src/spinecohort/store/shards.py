@@ -30,7 +30,7 @@ from spinecohort.measure.spinopelvic import measure
 from spinecohort.measure.tables import QUALITY_SUMMARY
 from spinecohort.mesh.contact import distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
-from spinecohort.mesh.quality import model_quality
+from spinecohort.mesh.quality import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
@@ -119,6 +119,7 @@ class _QualityInputs:
         self.n = template.n_hex_nodes
         self.hexes = np.ascontiguousarray(template.hexes, dtype=np.int64)
         self.part = template.part_of_hex()
+        self.codes = part_codes(self.part)
         self.mean = np.ascontiguousarray(hex_ssm.mean[: self.n])
         self._ctx = None
 
@@ -132,7 +133,7 @@ class _QualityInputs:
 def _check_models(hex_points, qi: _QualityInputs, w, model_ids, repair, log) -> tuple[dict, dict]:
     """``model_quality`` of hex_points (S, n_nodes, 3) mm, untangling the models with inverted hexes in place
     (and their quality again); returns (metrics, repairs): per-model arrays, no tables."""
-    metrics = model_quality(hex_points, qi.hexes, qi.part)
+    metrics = model_quality(hex_points, qi.hexes, qi.part, qi.codes)
     metrics["min_sj_before"], metrics["invalid_before"] = metrics["min_sj"].copy(), metrics["invalid"].copy()
     rep = {
         "nodes_moved": np.zeros(len(w), np.int64),
@@ -159,7 +160,7 @@ def _check_models(hex_points, qi: _QualityInputs, w, model_ids, repair, log) -> 
         rep["max_displacement_mm"][k] = r.max_displacement_mm
         rep["repaired"][k] = True
     if fixed_models:  # the repaired models' quality, evaluated again on their new coordinates
-        again = model_quality(hex_points[fixed_models], qi.hexes, qi.part)
+        again = model_quality(hex_points[fixed_models], qi.hexes, qi.part, qi.codes)
         for key, v in again.items():
             metrics[key][fixed_models] = v
     return metrics, rep
