@@ -5,7 +5,7 @@ in batches of whole store chunks: it samples the triangulated and the hexahedral
 the disc-contact distraction), checks every hex of every model and computes its Table 3 rows in one numba
 pass (``quality.model_quality``: each hex's corner Jacobians are formed once for both), untangles the
 models with inverted hexes exactly as ``models.hex_points_checked`` does (``repair.untangle`` against the
-hex mean, one shared ``UntangleContext``; only those models are evaluated again), computes the
+hex mean, one ``UntangleContext`` per job; only those models are evaluated again), computes the
 spinopelvic parameters on those float64 coordinates, and hands the batch to the store's ``ShardWriter``;
 nothing is read back.  Memory is one
 batch (49 models x ~145k nodes x 3 x 8 B ~ 170 MB per float64 array), whatever the shard size.  Check and
@@ -187,10 +187,6 @@ def _quality_frames(model_ids, metrics: dict, rep: dict) -> tuple[pd.DataFrame, 
     return rows[cols + [c for c in rows.columns if c not in cols]], table3
 
 
-def _concat_metrics(parts: list[dict]) -> dict:
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
-
 def check_and_repair(
     hex_points: np.ndarray,
     template: HexTemplate,
@@ -277,42 +273,33 @@ def process_shard(
     # faults than the products that fill them
     t_buf = np.empty((min(batch, len(w)), *ssm.mean.shape))
     h_buf = np.empty((min(batch, len(w)), *hex_ssm.mean.shape))
-    # one store chunk at a time is sampled, distracted, checked (and repaired) and written while its ~24 MB
-    # of float64 are in the cache (a batch is ~170 MB, so every pass over a whole batch would come from
-    # memory); the parameters need only the landmark rows and the tables are built once per batch
-    step = writer.chunk if writer is not None else batch
+    # whole batches through every phase: taking one 7-model store chunk at a time from sampling to the write,
+    # while it is in the cache, saved ~0.8 s of a shard's write phase and cost as much in per-chunk fixed
+    # costs (17 endplate plane fits, kernel and table set-up per call; measured, docs/store.md)
     for i in range(0, len(w), batch):
         wb, ib = w[i : i + batch], ids[i : i + batch]
-        t64, h64 = t_buf[: len(wb)], h_buf[: len(wb)]
-        checked, contact = [], []
-        for j in range(0, len(wb), step):
-            t, c = time.perf_counter(), time.process_time()
-            wc, tc, hc = wb[j : j + step], t64[j : j + step], h64[j : j + step]
-            np.matmul(wc, df_tri, out=tc.reshape(len(wc), -1))
-            tc += ssm.mean
-            np.matmul(wc, df_hex, out=hc.reshape(len(wc), -1))
-            hc += hex_ssm.mean
-            if hex_ssm.contact is not None:
-                contact.append(resolve_contact(tc, hc, hex_ssm.contact))
-            t, c = tick("sample", t, c)
-            # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds
-            checked.append(_check_models(hc, qi, wc, ib[j : j + step], repair, log))
-            t, c = tick("quality", t, c)
-            if writer is not None:
-                writer.add(tc, hc)
-            tick("write", t, c)
         t, c = time.perf_counter(), time.process_time()
-        metrics, rep = (_concat_metrics([m[k] for m in checked]) for k in (0, 1))
-        q, table3 = _quality_frames(ib, metrics, rep)
+        t64, h64 = t_buf[: len(wb)], h_buf[: len(wb)]
+        np.matmul(wb, df_tri, out=t64.reshape(len(wb), -1))
+        t64 += ssm.mean
+        np.matmul(wb, df_hex, out=h64.reshape(len(wb), -1))
+        h64 += hex_ssm.mean
         if hex_ssm.contact is not None:
-            gaps, offsets = (np.concatenate([g[k] for g in contact]) for k in (0, 1))
+            gaps, offsets = resolve_contact(t64, h64, hex_ssm.contact)
+        t, c = tick("sample", t, c)
+        # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds
+        q, table3 = _quality_frames(ib, *_check_models(h64, qi, wb, ib, repair, log))
+        if hex_ssm.contact is not None:
             for key, v in distraction_summary(gaps, offsets).items():
                 q[key] = v
         quality.append(pd.concat([q, table3], axis=1))
         t, c = tick("quality", t, c)
         p_tri.append(measure(t64, tri_landmarks, **measure_kw))
         p_hex.append(measure(h64, hex_lm, **measure_kw))
-        tick("measure", t, c)
+        t, c = tick("measure", t, c)
+        if writer is not None:
+            writer.add(t64, h64)
+        tick("write", t, c)
     p_tri = pd.concat(p_tri, ignore_index=True)
     p_hex = pd.concat(p_hex, ignore_index=True)
     return pd.concat(quality, ignore_index=True), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
