@@ -100,6 +100,7 @@ def run_jobs(cmds: list[list[str]], jobs: int = 1, logdir: Path | None = None) -
         out[k] = {
             "wall_s": time.perf_counter() - t0,
             "cpu_s": ru.ru_utime + ru.ru_stime,
+            "sys_s": ru.ru_stime,  # kernel: page cache (file writes and reads), page faults
             "rss_mb": ru.ru_maxrss / 1024,
             "out": (logdir / f"{k}.out").read_text(),
         }
@@ -332,20 +333,23 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
     records = [json.loads(Path(outs[s]["record"]).read_text()) for s in shards]
     phases = ("load", "sample", "quality", "measure", "write", "close")
     print(
-        f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'RSS MB':>7s} {'B/node':>7s} {'enc CPU s':>9s}  "
+        f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'sys s':>6s} {'RSS MB':>7s} {'B/node':>7s} {'enc CPU s':>9s}  "
         f"CPU s per phase ({', '.join(phases)}; quality = check + repair + Table 3)"
     )
     for s, r, rec in zip(shards, jobs, records):
         n = rec["models"][1] - rec["models"][0]
         cpu = " ".join(f"{rec[f'{k}_cpu_s']:5.1f}" for k in phases)
         print(
-            f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['rss_mb']:7.0f} "
+            f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['sys_s']:6.1f} {r['rss_mb']:7.0f} "
             f"{rec['stored_bytes'] / rec['stored_nodes']:7.3f} {rec['encode_cpu_s']:9.2f}  {cpu}"
         )
     chk = run([sys.executable, "-c", _CHECK, str(store)])
     stage_wall = time.perf_counter() - t_stage
     bad = int(chk["out"].strip())
-    print(f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU, {bad} shards flagged (unwritten ones)")
+    print(
+        f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU (sys {chk['sys_s']:.1f}), {bad} shards "
+        "flagged (unwritten ones)"
+    )
     floor = codec_floor(store, shards)
     models = sum(r["models"][1] - r["models"][0] for r in records)
     stage_cpu = init["cpu_s"] + sum(j["cpu_s"] for j in jobs) + chk["cpu_s"]
@@ -363,6 +367,12 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
         f"store-stage CPU (init + jobs + check): {stage_cpu:.1f} s -> CPU / floor = {stage_cpu / floor:.2f} "
         f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, sha256, file writes): "
         f"{write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
+    )
+    stage_sys = sum(j["sys_s"] for j in jobs) + chk["sys_s"]
+    print(
+        f"of the stage CPU, kernel (sys) time {stage_sys:.1f} s (page cache of the written and hashed shards, page "
+        f"faults; it varies several-fold with the machine's memory state), user {stage_cpu - stage_sys:.1f} s -> "
+        f"user CPU / floor = {(stage_cpu - stage_sys) / floor:.2f}; load average now {os.getloadavg()[0]:.1f}"
     )
     per_phase = {k: sum(r[f"{k}_cpu_s"] for r in records) for k in phases}
     start_up = sum(j["cpu_s"] for j in jobs) - sum(per_phase.values())

@@ -9,7 +9,7 @@ import pytest
 from spinecohort.cohort.landmarks import DISCS
 from spinecohort.fe.models import hex_points_checked
 from spinecohort.measure.spinopelvic import measure
-from spinecohort.mesh.contact import disc_gaps, distraction_summary, level_offsets
+from spinecohort.mesh.contact import disc_gaps, distraction_summary, level_offsets, resolve_contact
 from spinecohort.mesh.hex_ssm import contact_offsets, transfer_fields
 from spinecohort.mesh.quality import scaled_jacobian
 from spinecohort.store.shards import hex_landmarks, sample_points
@@ -108,6 +108,33 @@ def test_every_extreme_model_is_valid_after_distraction(extreme, template):
         assert rep["invalid_after"] == 0 and scaled_jacobian(pts[:n], template.hexes).min() > 0
         distracted += rep["distraction_mm"] > 0
     assert distracted >= 1
+
+
+def test_in_place_offsets_equal_the_dense_formula_to_the_bit(extreme, ssm):
+    """The shard job's in-place kernels (two levels per hex node, a gather per vertex) against the dense
+    definition ``points + einsum(hex, offsets)`` / ``points + offsets[tri_level]``: the same float64 bits,
+    since the dense sum's other 15-17 terms are exact zeros."""
+    w, with_c, _ = extreme
+    c = with_c.contact
+    t = ssm.mean + np.tensordot(w, ssm.deformation_fields(w.shape[1]), axes=(1, 0))
+    h = with_c.mean + np.tensordot(w, with_c.fields[: w.shape[1]], axes=(1, 0))
+    gaps, off = c.level_offsets(h)
+    moved = np.flatnonzero(np.abs(off).max(axis=(1, 2)) > 0)
+    assert 1 <= len(moved) < len(w)  # some models distracted, some not
+    dense_h, dense_t = h.copy(), t.copy()
+    dense_h[moved] += c.hex_offsets(off[moved])
+    dense_t[moved] += c.tri_offsets(off[moved])
+    assert (c.hex != 0).sum(axis=1).max() == 2  # disc nodes follow two levels
+    g, o = resolve_contact(t, h, c)
+    assert np.array_equal(g, gaps) and np.array_equal(o, off)
+    assert h.tobytes() == dense_h.tobytes() and t.tobytes() == dense_t.tobytes()
+    # float32 points (fe.models passes them too) take the dense path cast to float32
+    h32 = (with_c.mean + np.tensordot(w, with_c.fields[: w.shape[1]], axes=(1, 0))).astype(np.float32)
+    want, (_, off32) = h32.copy(), c.level_offsets(h32)
+    m32 = np.flatnonzero(np.abs(off32).max(axis=(1, 2)) > 0)
+    want[m32] += c.hex_offsets(off32[m32]).astype(np.float32)
+    resolve_contact(None, h32, c)
+    assert len(m32) and np.array_equal(h32, want)
 
 
 def test_contact_map_round_trips_through_npz(extreme, tmp_path):

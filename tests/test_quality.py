@@ -228,6 +228,9 @@ def test_one_pass_model_quality_equals_the_separate_check_and_table3_metrics():
             assert got[f"gauss_jacobian_ratio_min_{label}"][b] == pytest.approx(g, rel=1e-12, abs=1e-12)
     with pytest.raises(ValueError, match="outside"):
         q.model_quality(batch[:, :-1], H, part)  # the last node is referenced
+    # precomputed part codes (the shard job's, once per job) give the same dict, bit for bit
+    again = q.model_quality(batch, H, part, q.part_codes(part))
+    assert list(again) == list(got) and all(np.array_equal(again[k], got[k]) for k in got)
     # table3_per_model is the same pass, chunked over models
     t3 = q.table3_per_model(batch, H, part, chunk=2)
     assert list(t3.columns[:2]) == ["pct_errors_NP", "pct_warnings_NP"] and len(t3) == 3

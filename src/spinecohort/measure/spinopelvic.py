@@ -285,8 +285,9 @@ class _Block:
         idx = [np.asarray(i).ravel() for i in sets.values()]
         ends = np.cumsum([len(i) for i in idx])
         self.slices = {k: slice(e - len(i), e) for k, i, e in zip(sets, idx, ends)}
-        # gather first, convert after: a float32 (B, 95k, 3) batch is never copied whole
-        self.pts = np.take(points, np.concatenate(idx), axis=1).astype(float)
+        # gather first, convert after: a float32 (B, 95k, 3) batch is never copied whole; a float64 one is
+        # gathered once (the take is already a copy)
+        self.pts = np.take(points, np.concatenate(idx), axis=1).astype(float, copy=False)
         if not np.isfinite(self.pts.sum()):
             bad = ~np.isfinite(self.pts).all(axis=(0, 2))
             first = int(np.argmax(bad))

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from spinecohort.cohort.landmarks import DISCS, Landmarks
 from spinecohort.mesh.contact import ContactMap, contact_map
@@ -76,6 +75,8 @@ def _affine_plus_residual(src_pts: np.ndarray, src_fields: np.ndarray, query: np
     resid = src_fields - affine_src
     qh = np.c_[query, np.ones(len(query))]
     out = (qh @ coef).reshape(len(query), m, 3).transpose(1, 0, 2)
+    from scipy.spatial import cKDTree  # here: the shard jobs load a hex SSM and never build one
+
     k = min(k, n)
     d, idx = cKDTree(src_pts).query(query, k=k)
     w = 1.0 / (d**2 + 1e-6)
@@ -102,6 +103,8 @@ def transfer_fields(
     fields[:, n_hex:] = df_tri[:, template.surface_vertex]
     hex_pts = hex_mean[:n_hex]
     if method == "nearest":
+        from scipy.spatial import cKDTree
+
         _, nearest = cKDTree(tri_ssm.mean).query(hex_pts)
         fields[:, :n_hex] = df_tri[:, nearest]
     elif method == "smooth":

@@ -803,25 +803,37 @@ def model_quality_nb(Xb, conn, part, n_parts, warn_sj, warn_lo_deg, warn_hi_deg)
     return counts, minima
 
 
-def model_quality(points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray) -> dict[str, np.ndarray]:
-    """The shard pass's per-model quality in one kernel pass (``model_quality_nb``): the check (scaled Jacobian
-    per model and tissue) and the seed's Table 3 columns, from one evaluation of each hex's corner Jacobians.
-
-    points (B, n_nodes, 3) mm (any float dtype, any layout: the kernel reads the node rows of ``hexes``);
-    part_of_element (E,) labels.  Returns (B,) arrays: ``min_sj`` and ``invalid`` (hexes with scaled Jacobian
-    <= 0) over all hexes, ``min_sj_<part>`` per part (parts in sorted order), and the ``table3_per_model``
-    columns ``<metric>_<part>`` (parts in order of first appearance).
-    """
+def part_codes(part_of_element: np.ndarray) -> tuple[np.ndarray, list, np.ndarray, np.ndarray]:
+    """The part labels of the hexes as ``model_quality`` needs them: (code (E,) int64: index of each hex's
+    label in order of first appearance, labels in that order, rank: sorted-label index -> that index,
+    hexes per label (float64)).  Computed once per shard job (``model_quality(..., codes=...)``)."""
     part = np.asarray(part_of_element)
-    conn = np.ascontiguousarray(hexes, dtype=np.int64)
-    if part.shape != (len(conn),):
-        raise ValueError(f"part_of_element must have shape ({len(conn)},), got {part.shape}")
     uniq, first, inverse = np.unique(part, return_index=True, return_inverse=True)  # uniq sorted
     appearance = np.argsort(first, kind="stable")  # sorted-label indices in order of first appearance
     rank = np.empty(len(uniq), dtype=np.int64)
     rank[appearance] = np.arange(len(uniq))
     code = rank[inverse.ravel()]  # per element: its label's index in order of first appearance
     labels = uniq[appearance].tolist()
+    n_el = np.bincount(code, minlength=len(labels)).astype(np.float64)
+    return code.astype(np.int64), labels, rank, n_el
+
+
+def model_quality(
+    points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray, codes: tuple | None = None
+) -> dict[str, np.ndarray]:
+    """The shard pass's per-model quality in one kernel pass (``model_quality_nb``): the check (scaled Jacobian
+    per model and tissue) and the seed's Table 3 columns, from one evaluation of each hex's corner Jacobians.
+
+    points (B, n_nodes, 3) mm (any float dtype, any layout: the kernel reads the node rows of ``hexes``);
+    part_of_element (E,) labels (codes: their ``part_codes``, if already computed).  Returns (B,) arrays:
+    ``min_sj`` and ``invalid`` (hexes with scaled Jacobian <= 0) over all hexes, ``min_sj_<part>`` per part
+    (parts in sorted order), and the ``table3_per_model`` columns ``<metric>_<part>`` (parts in order of
+    first appearance).
+    """
+    conn = np.ascontiguousarray(hexes, dtype=np.int64)
+    if np.shape(part_of_element) != (len(conn),):
+        raise ValueError(f"part_of_element must have shape ({len(conn)},), got {np.shape(part_of_element)}")
+    code, labels, rank, n_el = part_codes(part_of_element) if codes is None else codes
     x = np.asarray(points)
     if x.ndim != 3 or x.shape[-1] != 3:
         raise ValueError(f"points must have shape (B, n_nodes, 3), got {x.shape}")
@@ -829,10 +841,7 @@ def model_quality(points: np.ndarray, hexes: np.ndarray, part_of_element: np.nda
         raise ValueError(f"hexes reference nodes outside 0..{x.shape[1] - 1}")
     if x.dtype != np.float64:
         x = x.astype(np.float64)
-    counts, minima = model_quality_nb(
-        x, conn, code.astype(np.int64), len(labels), WARNING_MIN_SCALED_JACOBIAN, *WARNING_FACE_ANGLE_DEG
-    )
-    n_el = np.bincount(code, minlength=len(labels)).astype(np.float64)
+    counts, minima = model_quality_nb(x, conn, code, len(labels), WARNING_MIN_SCALED_JACOBIAN, *WARNING_FACE_ANGLE_DEG)
     out = {"min_sj": minima[:, :, 0].min(axis=1), "invalid": counts[:, :, 0].sum(axis=1)}
     for j in rank:  # sorted label order
         out[f"min_sj_{labels[j]}"] = minima[:, j, 0]

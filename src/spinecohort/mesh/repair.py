@@ -24,11 +24,9 @@ gmsh WinslowUntangler are C++). Lengths in mm.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pyvista as pv
-import scipy.optimize
-import scipy.sparse
 
 from spinecohort.mesh.quality import (
     CORNER_NEIGHBOURS,
@@ -39,7 +37,12 @@ from spinecohort.mesh.quality import (
     corner_jacobians,
     min_scaled_jacobian_nb,
 )
-from spinecohort.mesh.vtk_mesh import surface
+
+# scipy.optimize, scipy.sparse and pyvista are imported where they are used: a shard job imports this module
+# for the few models that need untangling (none on the default grid) and would pay ~0.5 s for them per job
+if TYPE_CHECKING:
+    import pyvista as pv
+    import scipy.sparse
 
 
 class RepairError(ValueError):
@@ -123,6 +126,8 @@ def boundary_nodes(hexes: np.ndarray) -> np.ndarray:
 
 
 def _incidence(hexes: np.ndarray, n_nodes: int) -> scipy.sparse.csr_matrix:
+    import scipy.sparse
+
     E = len(hexes)
     return scipy.sparse.csr_matrix(
         (np.ones(8 * E, dtype=np.int32), (np.repeat(np.arange(E), 8), hexes.ravel())), shape=(E, n_nodes)
@@ -162,6 +167,8 @@ def _tangent_frames(normals: np.ndarray) -> np.ndarray:
 
 def _surface_near(points: np.ndarray, faces: np.ndarray, node_mask: np.ndarray) -> pv.PolyData:
     """Triangulated surface quads that touch node_mask, as a pyvista PolyData for closest-point queries."""
+    from spinecohort.mesh.vtk_mesh import surface
+
     quads = faces[node_mask[faces].any(1)]
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     return surface(points, tris).compute_normals(
@@ -280,6 +287,8 @@ def _attempt(
     Sliding nodes move in their tangent plane during L-BFGS and are then projected back onto the sample's
     input surface (its boundary quads split into triangles), so they stay on the morphed surface.
     """
+    from scipy.optimize import minimize
+
     seed = np.zeros(len(points), bool)
     seed[hexes[bad].ravel()] = True
     patch = _grow(seed, inc, rings)
@@ -330,7 +339,7 @@ def _attempt(
     stagnant = 0
     for _ in range(max_outer):
         eps = np.sqrt(1e-8 + 0.04 * min(d.min(), 0.0) ** 2)
-        res = scipy.optimize.minimize(fun, z, args=(eps,), jac=True, method="L-BFGS-B", options={"maxiter": maxiter})
+        res = minimize(fun, z, args=(eps,), jac=True, method="L-BFGS-B", options={"maxiter": maxiter})
         z = res.x
         x = positions(z)
         if len(free2):

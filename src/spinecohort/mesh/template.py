@@ -28,8 +28,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.spatial.transform import Rotation, Slerp
 
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
 
@@ -118,6 +116,8 @@ def ogrid(res: TemplateResolution) -> OGrid:
     inner = _square_boundary(c, n)  # 4n points
     outer = _superellipse_on_rays(inner, res.exponent)
     total = _polygon_area(outer)
+    from scipy.optimize import brentq  # here: the shard jobs load a template and never build one (0.4 s import)
+
     f_np = brentq(lambda f: _polygon_area(inner + f * (outer - inner)) - res.np_area_fraction * total, 0.0, 1.0)
     k_np = max(1, (rings - 1) // 2)
     f = np.concatenate(
@@ -439,6 +439,8 @@ def _place(grid_nodes: np.ndarray, ep: Endplate) -> np.ndarray:
 
 
 def _place_between(grid_nodes: np.ndarray, lower: Endplate, upper: Endplate, t: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation, Slerp
+
     rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([lower.frame, upper.frame])))(t).as_matrix()
     half = (1 - t) * lower.half_axes + t * upper.half_axes
     centre = (1 - t) * lower.centre + t * upper.centre

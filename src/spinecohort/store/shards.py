@@ -5,7 +5,7 @@ in batches of whole store chunks: it samples the triangulated and the hexahedral
 the disc-contact distraction), checks every hex of every model and computes its Table 3 rows in one numba
 pass (``quality.model_quality``: each hex's corner Jacobians are formed once for both), untangles the
 models with inverted hexes exactly as ``models.hex_points_checked`` does (``repair.untangle`` against the
-hex mean, one shared ``UntangleContext``; only those models are evaluated again), computes the
+hex mean, one ``UntangleContext`` per job; only those models are evaluated again), computes the
 spinopelvic parameters on those float64 coordinates, and hands the batch to the store's ``ShardWriter``;
 nothing is read back.  Memory is one
 batch (49 models x ~145k nodes x 3 x 8 B ~ 170 MB per float64 array), whatever the shard size.  Check and
@@ -30,7 +30,7 @@ from spinecohort.measure.spinopelvic import measure
 from spinecohort.measure.tables import QUALITY_SUMMARY
 from spinecohort.mesh.contact import distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
-from spinecohort.mesh.quality import model_quality
+from spinecohort.mesh.quality import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
@@ -107,54 +107,83 @@ def shard_quality(
     w = _check_weights(weights, hex_ssm.fields.shape[0], "hex SSM")
     if hex_points.shape != (len(w), *hex_ssm.mean.shape):
         raise ValueError(f"hex_points must be {(len(w), *hex_ssm.mean.shape)}, got {hex_points.shape}")
-    n = template.n_hex_nodes
-    hexes = np.ascontiguousarray(template.hexes, dtype=np.int64)
-    part = template.part_of_hex()
-    metrics = model_quality(hex_points, hexes, part)
+    checked = _check_models(hex_points, _QualityInputs(template, hex_ssm), w, model_ids, repair, log)
+    return _quality_frames(model_ids, *checked)
+
+
+class _QualityInputs:
+    """What every check of a shard shares: the template's hexes and parts, the hex mean (untangling's
+    reference) and, built on the first model that needs it, the untangling context."""
+
+    def __init__(self, template: HexTemplate, hex_ssm: HexSSM):
+        self.n = template.n_hex_nodes
+        self.hexes = np.ascontiguousarray(template.hexes, dtype=np.int64)
+        self.part = template.part_of_hex()
+        self.codes = part_codes(self.part)
+        self.mean = np.ascontiguousarray(hex_ssm.mean[: self.n])
+        self._ctx = None
+
+    @property
+    def ctx(self):
+        if self._ctx is None:  # topology + reference quality, shared by every model
+            self._ctx = prepare_untangle(self.hexes, self.mean)
+        return self._ctx
+
+
+def _check_models(hex_points, qi: _QualityInputs, w, model_ids, repair, log) -> tuple[dict, dict]:
+    """``model_quality`` of hex_points (S, n_nodes, 3) mm, untangling the models with inverted hexes in place
+    (and their quality again); returns (metrics, repairs): per-model arrays, no tables."""
+    metrics = model_quality(hex_points, qi.hexes, qi.part, qi.codes)
+    metrics["min_sj_before"], metrics["invalid_before"] = metrics["min_sj"].copy(), metrics["invalid"].copy()
+    rep = {
+        "nodes_moved": np.zeros(len(w), np.int64),
+        "max_displacement_mm": np.zeros(len(w)),
+        "repaired": np.zeros(len(w), bool),
+        "repair_error": np.full(len(w), "", dtype=object),
+    }
+    bad = np.flatnonzero(metrics["invalid"])
+    fixed_models = []
+    n = qi.n
+    for k in bad if repair else ():  # few models per shard (~2 % on the default grid); untangle is per mesh
+        try:
+            fixed, r = untangle(np.array(hex_points[k, :n], dtype=np.float64), qi.hexes, qi.mean, context=qi.ctx)
+        except RepairError as exc:
+            rep["repair_error"][k] = f"{model_name(int(model_ids[k]))}: {exc}"
+            if log is not None:
+                log.warning(
+                    "%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])), w[k].tolist(), exc
+                )
+            continue
+        hex_points[k, :n] = fixed
+        fixed_models.append(k)
+        rep["nodes_moved"][k] = len(r.moved_nodes)
+        rep["max_displacement_mm"][k] = r.max_displacement_mm
+        rep["repaired"][k] = True
+    if fixed_models:  # the repaired models' quality, evaluated again on their new coordinates
+        again = model_quality(hex_points[fixed_models], qi.hexes, qi.part, qi.codes)
+        for key, v in again.items():
+            metrics[key][fixed_models] = v
+    return metrics, rep
+
+
+def _quality_frames(model_ids, metrics: dict, rep: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(check rows, Table 3 rows) of ``_check_models``' arrays (see :func:`shard_quality`)."""
     rows = pd.DataFrame(
         {
             "model_id": np.asarray(model_ids, dtype=np.int64),
-            "min_sj_before": metrics["min_sj"],
-            "invalid_before": metrics["invalid"],
-            "nodes_moved": 0,
-            "max_displacement_mm": 0.0,
-            "repaired": False,
-            "repair_error": "",
+            "min_sj_before": metrics["min_sj_before"],
+            "invalid_before": metrics["invalid_before"],
+            **rep,
         }
     )
-    bad = np.flatnonzero(metrics["invalid"])
-    fixed_models = []
-    if len(bad) and repair:
-        mean = np.ascontiguousarray(hex_ssm.mean[:n])
-        ctx = prepare_untangle(hexes, mean)  # topology + reference quality, shared by every model
-        for k in bad:  # few models per shard (~2 % on the default grid); untangle is per mesh
-            try:
-                fixed, rep = untangle(np.array(hex_points[k, :n], dtype=np.float64), hexes, mean, context=ctx)
-            except RepairError as exc:
-                rows.loc[k, "repair_error"] = f"{model_name(int(model_ids[k]))}: {exc}"
-                if log is not None:
-                    log.warning(
-                        "%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])), w[k].tolist(), exc
-                    )
-                continue
-            hex_points[k, :n] = fixed
-            fixed_models.append(k)
-            rows.loc[k, ["nodes_moved", "max_displacement_mm", "repaired"]] = (
-                int(len(rep.moved_nodes)),
-                float(rep.max_displacement_mm),
-                True,
-            )
-    if fixed_models:  # the repaired models' quality, evaluated again on their new coordinates
-        again = model_quality(hex_points[fixed_models], hexes, part)
-        for key, v in again.items():
-            metrics[key][fixed_models] = v
     rows["min_sj_after"] = metrics["min_sj"]
     rows["invalid_after"] = metrics["invalid"]
     for key, v in metrics.items():
-        if key.startswith("min_sj_"):
+        if key.startswith("min_sj_") and key != "min_sj_before":
             rows[key] = v
     cols = ["model_id", *QUALITY_SUMMARY, "repair_error"]  # the sheet's summary columns, spelled once
-    table3 = pd.DataFrame({k: v for k, v in metrics.items() if k not in ("min_sj", "invalid") and k not in rows})
+    skip = ("min_sj", "invalid", "min_sj_before", "invalid_before")
+    table3 = pd.DataFrame({k: v for k, v in metrics.items() if k not in skip and k not in rows})
     return rows[cols + [c for c in rows.columns if c not in cols]], table3
 
 
@@ -231,14 +260,25 @@ def process_shard(
     df_hex = hex_ssm.fields[:m].reshape(m, -1)
     phases = ("sample", "quality", "measure", "write")
     timing = {f"{k}{unit}": 0.0 for unit in ("_s", "_cpu_s") for k in phases}  # wall and CPU per phase
+
+    def tick(phase: str, t0: float, c0: float) -> tuple[float, float]:
+        t1, c1 = time.perf_counter(), time.process_time()
+        timing[f"{phase}_s"] += t1 - t0
+        timing[f"{phase}_cpu_s"] += c1 - c0
+        return t1, c1
+
+    qi = _QualityInputs(template, hex_ssm)
     quality, p_tri, p_hex = [], [], []
     # two float64 batch buffers reused batch after batch: fresh ~100 MB arrays per batch cost more in page
     # faults than the products that fill them
     t_buf = np.empty((min(batch, len(w)), *ssm.mean.shape))
     h_buf = np.empty((min(batch, len(w)), *hex_ssm.mean.shape))
+    # whole batches through every phase: taking one 7-model store chunk at a time from sampling to the write,
+    # while it is in the cache, saved ~0.8 s of a shard's write phase and cost as much in per-chunk fixed
+    # costs (17 endplate plane fits, kernel and table set-up per call; measured, docs/store.md)
     for i in range(0, len(w), batch):
         wb, ib = w[i : i + batch], ids[i : i + batch]
-        t0, c0 = time.perf_counter(), time.process_time()
+        t, c = time.perf_counter(), time.process_time()
         t64, h64 = t_buf[: len(wb)], h_buf[: len(wb)]
         np.matmul(wb, df_tri, out=t64.reshape(len(wb), -1))
         t64 += ssm.mean
@@ -246,23 +286,20 @@ def process_shard(
         h64 += hex_ssm.mean
         if hex_ssm.contact is not None:
             gaps, offsets = resolve_contact(t64, h64, hex_ssm.contact)
-        t1, c1 = time.perf_counter(), time.process_time()
+        t, c = tick("sample", t, c)
         # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds
-        q, table3 = shard_quality(h64, template, hex_ssm, wb, ib, repair, log)
+        q, table3 = _quality_frames(ib, *_check_models(h64, qi, wb, ib, repair, log))
         if hex_ssm.contact is not None:
             for key, v in distraction_summary(gaps, offsets).items():
                 q[key] = v
         quality.append(pd.concat([q, table3], axis=1))
-        t2, c2 = time.perf_counter(), time.process_time()
+        t, c = tick("quality", t, c)
         p_tri.append(measure(t64, tri_landmarks, **measure_kw))
         p_hex.append(measure(h64, hex_lm, **measure_kw))
-        t3, c3 = time.perf_counter(), time.process_time()
+        t, c = tick("measure", t, c)
         if writer is not None:
             writer.add(t64, h64)
-        t4, c4 = time.perf_counter(), time.process_time()
-        for k, dt, dc in zip(phases, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), (c1 - c0, c2 - c1, c3 - c2, c4 - c3)):
-            timing[f"{k}_s"] += dt
-            timing[f"{k}_cpu_s"] += dc
+        tick("write", t, c)
     p_tri = pd.concat(p_tri, ignore_index=True)
     p_hex = pd.concat(p_hex, ignore_index=True)
     return pd.concat(quality, ignore_index=True), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
