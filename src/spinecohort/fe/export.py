@@ -225,14 +225,15 @@ def fe_model(
     """The template as an FEModel with the given node coordinates (default: the template's own): one
     connected mechanical body (`spinecohort.fe.connections`).
 
-    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates: `hex_type`), ``HEXES_DISC``
-    (annulus and nucleus, `DISC_TYPE_TISSUES`: `disc_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's
-    fibre law aborts with C3D8/C3D8I, and C3D8 locks the nearly incompressible nucleus), ``SURFACES`` (S3 skins), ``LIGAMENTS`` (tension-only SPRINGA), ``CONNECTORS`` (linear
-    SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the facet nodes on their vertebra), ``FACETS``
-    (GAPUNI facet-joint gaps, `spinecohort.fe.facets`; element sets ``FACET_*``).  Nodes: the template's
-    (ids 1..N, template order), then the facet nodes (materials.facets None: none).  Hex elements are therefore numbered bone and endplates first, then disc soft tissue,
-    each in template order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model).
-    disc_hex_type None: the disc in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
+    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates: `hex_type`), ``HEXES_DISC`` (annulus and
+    nucleus, `DISC_TYPE_TISSUES`: `disc_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's fibre law aborts
+    with C3D8/C3D8I, and C3D8 locks the nearly incompressible nucleus), ``SURFACES`` (S3 skins), ``LIGAMENTS``
+    (tension-only SPRINGA), ``CONNECTORS`` (linear SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the
+    facet nodes on their vertebra), ``FACETS`` (GAPUNI facet-joint gaps, `spinecohort.fe.facets`; element sets
+    ``FACET_*``).  Nodes: the template's (ids 1..N, template order), then the facet nodes (materials.facets None:
+    none).  Hex elements are therefore numbered bone and endplates first, then disc soft tissue, each in template
+    order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model). disc_hex_type None: the disc
+    in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
     (a deck of loose parts, for pictures only).
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
     """

@@ -11,8 +11,9 @@ the disc, at mid-height, and hangs on three linear spring groups, each of total 
 the lower vertebra's superior endplate, and to the lower vertebra's transverse-process tip.  No joint-level
 stiffness was obtained: the one published number, ~20 N/mm (J Biomech 2024;163:111923, two donors), was
 measured on the whole rib and cuts the T2-T3 unit's axial rotation by 1 %, against 10-16 % measured in vitro
-(Liebsch & Wilke 2020); 200 N/mm, the default, reproduces the 10 % (docs/rom.md).  A spine model without a rib cage (every exported deck) has no rib heads: the heads are a
-feature of the specimens, which is why they live here and are off unless ``rom.rib_heads.enabled``.
+(Liebsch & Wilke 2020); 200 N/mm, the default, reproduces the 10 % (docs/rom.md).  A spine model without a
+rib cage (every exported deck) has no rib heads: the heads are a feature of the specimens, which is why they
+live here, in the ROM only (``rom.rib_heads.enabled``).
 Units: mm, N.
 """
 
