@@ -31,8 +31,16 @@ from spinecohort.mesh.template import HexTemplate
 #: ~0.01 mm under a 100 N ligament force, i.e. it is as good as rigid next to the disc, while the matrix stays
 #: well conditioned next to 0.1 MPa soft tissue
 CONNECTOR_N_PER_MM = 2000.0
-#: the connectors' linear force-elongation table (N, mm), the same in tension and compression
-CONNECTOR_TABLE = ((-CONNECTOR_N_PER_MM * 100.0, -100.0), (CONNECTOR_N_PER_MM * 100.0, 100.0))
+
+
+def linear_spring_table(stiffness_n_per_mm: float) -> tuple[tuple[float, float], ...]:
+    """A linear SPRINGA force-elongation table (N, mm) of the given stiffness, the same in tension and
+    compression, +-100 mm."""
+    return ((-stiffness_n_per_mm * 100.0, -100.0), (stiffness_n_per_mm * 100.0, 100.0))
+
+
+#: the connectors' linear force-elongation table (N, mm)
+CONNECTOR_TABLE = linear_spring_table(CONNECTOR_N_PER_MM)
 #: target nodes per piece of the pelvis (on the sacrum) and per femoral head (on the pelvis)
 NEAREST_TARGETS = 16
 #: springs shorter than this (mm) have no defined direction; such a pair is left out

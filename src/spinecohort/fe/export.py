@@ -107,6 +107,17 @@ DISC_HEX_TYPE = "C3D8R"
 #: law aborts with C3D8/C3D8I) and the nucleus (a fully integrated C3D8 locks the nearly incompressible nucleus in
 #: bending: 2.5x the stiffness of C3D20R and C3D8I, docs/rom.md "Element choice")
 DISC_TYPE_TISSUES: tuple[str, ...] = ("_AF", "_NP")
+
+
+def disc_hexes(template: HexTemplate) -> np.ndarray:
+    """(E,) bool: the template's hexes of the disc soft tissue (`DISC_TYPE_TISSUES`)."""
+    disc = np.zeros(len(template.hexes), bool)
+    for name, idx in template.elsets.items():
+        if template.elset_kind[name] == "hex" and name.endswith(DISC_TYPE_TISSUES):
+            disc[idx] = True
+    return disc
+
+
 #: node sets by which an exported deck is fixed, in order of preference
 FIXED_SETS = ("PELVIS", "EP_SUP_S1")
 
@@ -248,11 +259,10 @@ def fe_model(
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
-    disc = np.zeros(len(template.hexes), bool)
     if disc_hex_type is not None and disc_hex_type != hex_type:
-        for name, idx in template.elsets.items():
-            if template.elset_kind[name] == "hex" and name.endswith(DISC_TYPE_TISSUES):
-                disc[idx] = True
+        disc = disc_hexes(template)
+    else:
+        disc = np.zeros(len(template.hexes), bool)
     hex_order = np.concatenate([np.flatnonzero(~disc), np.flatnonzero(disc)])
     pos_of_hex = np.empty(len(template.hexes), dtype=np.int64)
     pos_of_hex[hex_order] = np.arange(len(hex_order))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from spinecohort.rom.run import units_only
 from spinecohort.store.zarr_store import model_id, model_name
 
 
@@ -23,13 +24,8 @@ def mode_rom_config(rom: dict, report_keys=()) -> dict:
     """The ``rom`` block of a mode-study model: the functional units ``rom.mode_units`` alone (no lumbar
     model, no ALL run, no rib heads), the solver settings unchanged, the comparison keys (`report_keys`) left
     out."""
-    return {
-        **{k: v for k, v in rom.items() if k not in report_keys and k != "mode_units"},
-        "lumbar": {**rom["lumbar"], "enabled": False},
-        "rib_heads": {**rom.get("rib_heads", {}), "enabled": False},
-        "units": list(rom["mode_units"]),
-        "all_effect": False,
-    }
+    kept = {k: v for k, v in rom.items() if k not in report_keys and k != "mode_units"}
+    return units_only(kept, rom["mode_units"])
 
 
 def mode_models(n_modes: int, levels, mode_levels) -> pd.DataFrame:

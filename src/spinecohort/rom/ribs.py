@@ -130,8 +130,3 @@ def rib_head_nodes(
         stiffness=np.asarray(k, dtype=np.float64),
         tp_tips={v: np.asarray(t, dtype=np.int64) for v, t in tips.items()},
     )
-
-
-def spring_table(stiffness_n_per_mm: float) -> tuple[tuple[float, float], ...]:
-    """A linear SPRINGA force-elongation table (N, mm) of the given stiffness, +-100 mm."""
-    return ((-stiffness_n_per_mm * 100.0, -100.0), (stiffness_n_per_mm * 100.0, 100.0))

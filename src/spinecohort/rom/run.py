@@ -221,6 +221,18 @@ class Settings:
         )
 
 
+def units_only(rom: dict, units) -> dict:
+    """The ``rom`` block solving the functional units `units` alone: no lumbar model, no ALL run, no rib heads
+    (the rib-free model the exported decks are); the solver settings unchanged."""
+    return {
+        **rom,
+        "lumbar": {**rom["lumbar"], "enabled": False},
+        "rib_heads": {**rom.get("rib_heads", {}), "enabled": False},
+        "units": list(units),
+        "all_effect": False,
+    }
+
+
 def analyses(settings: Settings) -> list[tuple[str, str, str]]:
     """(mode, top, bottom) of every ROM model the settings ask for: 'lumbar' and one 'unit' per FU."""
     out = []
@@ -259,42 +271,27 @@ def solve_model(
             disc_hex_type=cfg.disc_hex_type,
             facets=mats.facets,
         )
+        # (variant, what differs from the intact model, heading suffix)
+        specs: list[tuple[str, dict, str]] = [("intact", {}, "")]
+        if cfg.all_effect and "extension" in cfg.load_cases and mats.include_all:
+            specs.append(("no_ALL", {"include_all": False}, " no ALL"))
+        if cfg.rib_heads is not None and mode == "unit" and (top, bottom) in RIB_SEGMENTS:
+            specs.append(("rib_heads", {"ribs": cfg.rib_heads}, " with rib heads"))
         variants = [
             (
-                "intact",
-                extract_rom_model(template, points, top, bottom, heading=f"{model_id} ROM {mode} {top}-{bottom}", **kw),
+                variant,
+                extract_rom_model(
+                    template,
+                    points,
+                    top,
+                    bottom,
+                    heading=f"{model_id} ROM {mode} {top}-{bottom}{suffix}",
+                    **kw,
+                    **extra,
+                ),
             )
+            for variant, extra, suffix in specs
         ]
-        if cfg.all_effect and "extension" in cfg.load_cases and mats.include_all:
-            variants.append(
-                (
-                    "no_ALL",
-                    extract_rom_model(
-                        template,
-                        points,
-                        top,
-                        bottom,
-                        include_all=False,
-                        heading=f"{model_id} ROM {mode} {top}-{bottom} no ALL",
-                        **kw,
-                    ),
-                )
-            )
-        if cfg.rib_heads is not None and mode == "unit" and (top, bottom) in RIB_SEGMENTS:
-            variants.append(
-                (
-                    "rib_heads",
-                    extract_rom_model(
-                        template,
-                        points,
-                        top,
-                        bottom,
-                        ribs=cfg.rib_heads,
-                        heading=f"{model_id} ROM {mode} {top}-{bottom} with rib heads",
-                        **kw,
-                    ),
-                )
-            )
         for variant, model in variants:
             msj = check_elements(model)
             log.info(

@@ -24,7 +24,7 @@ import pandas as pd
 from spinecohort.fe.export import materials_from_config
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import orderings, validate_from_config
-from spinecohort.rom.run import solve_model
+from spinecohort.rom.run import solve_model, units_only
 
 log = logging.getLogger(__name__)
 
@@ -67,15 +67,8 @@ def variants(cfg: dict) -> list[tuple[str, str, float, dict]]:
 
 
 def unit_rom_config(rom: dict) -> dict:
-    """The ``rom`` block restricted to the sensitivity's functional units (no lumbar model, no ALL run, no
-    rib heads: the sensitivity is that of the rib-free model the exported decks are)."""
-    return {
-        **rom,
-        "lumbar": {**rom["lumbar"], "enabled": False},
-        "rib_heads": {**rom.get("rib_heads", {}), "enabled": False},
-        "units": rom["sensitivity"]["units"],
-        "all_effect": False,
-    }
+    """The ``rom`` block restricted to the sensitivity's functional units (`units_only`)."""
+    return units_only(rom, rom["sensitivity"]["units"])
 
 
 def solve_variant(

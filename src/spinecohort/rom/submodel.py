@@ -40,13 +40,14 @@ from spinecohort.fe.connections import (
     arch_nodes,
     body_layer,
     drop_short,
+    linear_spring_table,
     posterior_wall,
     truss_pairs,
 )
 from spinecohort.fe.export import (
     DEFAULT_MATERIALS,
-    DISC_TYPE_TISSUES,
     FEMaterials,
+    disc_hexes,
     disc_orientations,
     hex_section,
     ligament_table,
@@ -54,7 +55,7 @@ from spinecohort.fe.export import (
 )
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
-from spinecohort.rom.ribs import RibHeads, rib_head_nodes, spring_table
+from spinecohort.rom.ribs import RibHeads, rib_head_nodes
 
 COLUMN = LEVELS + ("S1",)
 
@@ -186,10 +187,7 @@ def extract_rom_model(
         source = np.concatenate([source, np.full(len(rn.points), -1)])
 
     # disc soft-tissue hexes (annulus, nucleus) last, in their own block when their element type differs
-    disc = np.zeros(len(template.hexes), bool)
-    for name, idx in template.elsets.items():
-        if template.elset_kind[name] == "hex" and name.endswith(DISC_TYPE_TISSUES):
-            disc[idx] = True
+    disc = disc_hexes(template)
     disc_hex_type = disc_hex_type or hex_type
     if disc_hex_type != hex_type:
         hex_ids = np.concatenate([hex_ids[~disc[hex_ids]], hex_ids[disc[hex_ids]]])
@@ -281,7 +279,7 @@ def extract_rom_model(
         blocks["RIBS"] = ("SPRINGA", rib_conn)
         for i, (g, k) in enumerate(zip(rn.spring_groups, rn.stiffness)):
             elsets[f"{g}_{i + 1}"] = np.array([first + i])
-            sections.append(Section(elset=f"{g}_{i + 1}", spring_force_elongation=spring_table(k)))
+            sections.append(Section(elset=f"{g}_{i + 1}", spring_force_elongation=linear_spring_table(k)))
         lig_counts["RIB_HEAD"] = len(rn.points)
     fe = FEModel(
         nodes=pts,
