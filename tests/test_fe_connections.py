@@ -75,22 +75,33 @@ def test_a_part_held_only_by_tension_only_springs_is_reported_by_name(template, 
 
 
 def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(template):
-    from spinecohort.fe.facets import FacetContact
+    from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs
     from spinecohort.rom.submodel import extract_rom_model
 
     mats = replace(DEFAULT_MATERIALS, facets=replace(FacetContact(), tip_clearance_mm=1.0))
     fe = fe_model(template, materials=mats)
     n = template.n_nodes
     etype, gaps = fe.element_blocks["FACETS"]
-    # 16 segments x 2 sides, a joint gap and an extension stop each; the new nodes come after the template's
-    assert etype == "GAPUNI" and len(gaps) == 64 and len(fe.nodes) == n + 128 and gaps.min() >= n
-    np.testing.assert_allclose(fe.nodes[gaps[:, 0]], fe.nodes[gaps[:, 1]], atol=1e-12)  # coincident pairs
+    # 16 segments x 2 sides, a joint gap and an extension stop each, as 20 mm compression-only struts; the new
+    # nodes come after the template's
+    assert etype == "SPRINGA" and len(gaps) == 64 and len(fe.nodes) == n + 128 and gaps.min() >= n
     np.testing.assert_array_equal(fe.nodes[:n], template.nodes)
-    # the gaps the exported deck and the ROM sub-model of L2-L4 define for the same joints are the same
-    sec = {s.elset: s.gap for s in fe.sections if s.gap is not None}
+    # each strut runs from its lower node to its upper one along the contact direction, 20 mm long
+    direction = np.array(
+        [g[1] for g, _ in facet_nodes(template, template.nodes, facet_pairs(template), mats.facets).sections]
+    )
+    np.testing.assert_allclose(fe.nodes[gaps[:, 1]] - fe.nodes[gaps[:, 0]], 20.0 * direction, atol=1e-9)
+    # the struts the exported deck and the ROM sub-model of L2-L4 define for the same joints are the same
+    sec = {s.elset: s.spring_force_elongation for s in fe.sections if s.elset.startswith("FACET_")}
     rom = extract_rom_model(template, template.nodes, "L2", "L4", materials=mats, facets=mats.facets)
-    rom_sec = {s.elset: s.gap for s in rom.fe.sections if s.gap is not None}
-    assert len(rom_sec) == 8 and all(sec[k] == v for k, v in rom_sec.items())
+    rom_sec = {s.elset: s.spring_force_elongation for s in rom.fe.sections if s.elset.startswith("FACET_")}
+    assert len(sec) == 64 and len(rom_sec) == 8 and all(sec[k] == v for k, v in rom_sec.items())
+    # the GAPUNI variant: coincident node pairs with the same directions
+    gap = fe_model(template, materials=replace(mats, facets=replace(mats.facets, strut_length_mm=None)))
+    etype, pairs = gap.element_blocks["FACETS"]
+    assert etype == "GAPUNI"
+    np.testing.assert_allclose(gap.nodes[pairs[:, 0]], gap.nodes[pairs[:, 1]], atol=1e-12)
+    assert [tuple(s.gap[1]) for s in gap.sections if s.gap is not None] == [tuple(d) for d in direction]
     # and the deck without facets has none
     bare = fe_model(template, materials=replace(DEFAULT_MATERIALS, facets=None))
     assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n

@@ -408,22 +408,31 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
     # L2-L3 and L3-L4, left and right: a joint gap and an extension stop each (the default has the stop)
     assert m.ligament_groups["FACET"] == 4 and m.ligament_groups["FACET_TIP"] == 4
     etype, conn = m.fe.element_blocks["FACETS"]
-    assert etype == "GAPUNI" and len(conn) == 8
-    # the two nodes of a gap coincide (a rigid turn of the whole joint must not open or close it) and are new
-    # nodes (no template source): the joint gaps at the midpoint of the two process tips, the stops at the
-    # inferior articular process tip, closing along the lower vertebra's cranial axis
-    np.testing.assert_array_equal(m.fe.nodes[conn[:, 0]], m.fe.nodes[conn[:, 1]])
+    assert etype == "SPRINGA" and len(conn) == 8
+    # each contact is a compression-only strut between two new nodes (no template source), 20 mm long along the
+    # contact direction (a rigid turn of the whole joint leaves its length, so its contact, unchanged): the upper
+    # node at the midpoint of the two process tips (joint) or at the inferior articular process tip (stop), the
+    # lower node 20 mm back along the direction; the stops close along the lower vertebra's cranial axis
     assert (m.source_nodes[conn] == -1).all()
     cl = template.ligaments[template.elsets["LIG_CL"]]
     joints = cl[np.isin(cl, np.concatenate([arch_nodes(template, v) for v in ("L2", "L3", "L4")])).all(axis=1)]
-    np.testing.assert_allclose(m.fe.nodes[conn[:4, 0]], 0.5 * template.nodes[joints].sum(1), atol=1e-12)
-    np.testing.assert_allclose(m.fe.nodes[conn[4:, 0]], template.nodes[joints[:, 0]], atol=1e-12)
-    gaps = {sec.elset: sec.gap for sec in m.fe.sections if sec.gap is not None}
-    for name, (clearance, direction, _) in gaps.items():
+    np.testing.assert_allclose(m.fe.nodes[conn[:4, 1]], 0.5 * template.nodes[joints].sum(1), atol=1e-12)
+    np.testing.assert_allclose(m.fe.nodes[conn[4:, 1]], template.nodes[joints[:, 0]], atol=1e-12)
+    strut = m.fe.nodes[conn[:, 1]] - m.fe.nodes[conn[:, 0]]
+    np.testing.assert_allclose(np.linalg.norm(strut, axis=1), 20.0, rtol=1e-12)
+    names = m.fe.element_sets
+    tables = {sec.elset: sec.spring_force_elongation for sec in m.fe.sections if sec.elset.startswith("FACET_")}
+    first = min(int(names[k][0]) for k in tables)
+    for name, table in tables.items():
+        direction = strut[int(names[name][0]) - first] / 20.0
+        # no force until the strut has shortened by the clearance, then compression
+        assert table[-1] == (0.0, 20.0) and table[-2][0] == 0.0 and table[0][0] < 0.0
         if name.startswith("FACET_TIP_"):
             lower = name[len("FACET_TIP_") :].split("_")[0][2:]  # e.g. FACET_TIP_L2L3_R -> L3
-            assert clearance == 1.05
-            np.testing.assert_allclose(direction, vertebra_frame(template, template.nodes, lower)[0][:, 2])
+            assert table[-2][1] == -1.05
+            np.testing.assert_allclose(direction, vertebra_frame(template, template.nodes, lower)[0][:, 2], atol=1e-12)
+        else:
+            assert table[-2][1] == -0.5
     # each is tied to its own vertebra: L2 (top) by the rigid body, L4 (bottom) fixed, L3 by its arch truss
     arch_l3 = m.fe.element_blocks["ARCHES"][1]
     for lower, upper in conn:
@@ -431,7 +440,7 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
         in_l3 = {lower, upper} & set(arch_l3.ravel().tolist())
         assert (in_top and lower in in_l3) or (in_fixed and upper in in_l3)
     text = rom_deck_text(m, "axial_left", 7500.0)
-    assert text.count("*GAP, ELSET=FACET_") == 8 and "*ELEMENT, TYPE=GAPUNI, ELSET=FACETS" in text
+    assert text.count("*SPRING, ELSET=FACET_") == 8 and "*ELEMENT, TYPE=SPRINGA, ELSET=FACETS" in text
 
 
 # --- CalculiX ---------------------------------------------------------------------------------------
@@ -461,6 +470,39 @@ def test_gap_element_closes_at_its_clearance(tmp_path):
     res = run_ccx(deck, tmp_path)
     u = res.node_prints[-1].values[1][0]
     assert u == pytest.approx(-600.0 / 1010.0, rel=1e-4)
+
+
+@needs_ccx
+def test_contact_strut_closes_at_its_clearance_in_any_direction(tmp_path):
+    # the facet contact strut (`strut_table`: 0.5 mm clearance, 1000 N/mm, 20 mm long), laid along a direction
+    # 30 deg off the x axis, in series with the same 10 N/mm spring and 100 N as the gap test above: it closes
+    # after 0.5 mm of shortening, 100 = 10 u + 1000 (u - 0.5) -> u = 600 / 1010 = 0.59406 mm along the strut
+    # (the rounded corner, 0.05 mm wide, shifts the linear part by 0.025 mm: u = 625 / 1010 = 0.61881 mm)
+    from spinecohort.fe.abaqus import model_to_inp_text
+    from spinecohort.fe.calculix import run_ccx
+    from spinecohort.fe.facets import strut_table
+
+    d = np.array([np.cos(np.radians(30.0)), np.sin(np.radians(30.0)), 0.0])
+    fe = FEModel(
+        np.array([[0.0, 0, 0], 20.0 * d, 30.0 * d]),
+        {"C": ("SPRINGA", np.array([[0, 1]])), "S": ("SPRINGA", np.array([[1, 2]]))},
+        sections=[
+            Section("C", spring_force_elongation=strut_table(0.5, 1000.0, 20.0)),
+            Section("S", spring_force_elongation=((-100.0, -10.0), (100.0, 10.0))),
+        ],
+    )
+    # node 2 moves along the strut only (a *TRANSFORM whose local x is the strut), as the gap test's node 2
+    deck = tmp_path / "strut.inp"
+    deck.write_text(
+        model_to_inp_text(fe)
+        + f"*NSET, NSET=N2\n2\n*TRANSFORM, NSET=N2, TYPE=R\n{d[0]}, {d[1]}, 0., {-d[1]}, {d[0]}, 0.\n"
+        "*BOUNDARY\n1, 1, 3\n3, 1, 3\n2, 2, 3\n*STEP, NLGEOM\n*STATIC\n"
+        "0.1, 1.0, 1e-5, 0.1\n*CLOAD\n2, 1, -100.\n*NODE PRINT, NSET=NALL, GLOBAL=YES\nU\n*END STEP\n"
+    )
+    res = run_ccx(deck, tmp_path)
+    u = res.node_prints[-1].values[1]
+    assert u @ d == pytest.approx(-625.0 / 1010.0, rel=1e-3)
+    assert np.linalg.norm(u - (u @ d) * d) < 1e-3  # along the strut: no sideways drift
 
 
 @needs_ccx

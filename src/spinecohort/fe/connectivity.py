@@ -1,7 +1,7 @@
 """Is a deck one mechanical body?  Every element must be reachable from the fixed nodes through elements
 that carry load both ways (solids, shells, trusses, linear springs such as the connectors) and through
-rigid bodies / couplings; tension-only ligament springs and gap elements do not count, because a part held
-only by them floats as soon as they go slack (the failure the exported decks had: ccx diverged with
+rigid bodies / couplings; one-sided springs (tension-only ligaments, compression-only facet struts) and gap
+elements do not count, because a part held only by them floats as soon as they go slack (the failure the exported decks had: ccx diverged with
 displacement increments of ~1e15 mm).  Graph components by `scipy.sparse.csgraph.connected_components`.
 """
 
@@ -24,12 +24,16 @@ class ConnectivityError(ValueError):
 
 
 def tension_only_sets(model: FEModel) -> set[str]:
-    """Upper-case names of the SPRINGA sections whose table starts at zero force for a shortening (tension
-    only: the table's first row, the smallest elongation, is (0, <= 0); ccx holds the force beyond the ends)."""
+    """Upper-case names of the one-sided SPRINGA sections: tension only (the table's first row, the smallest
+    elongation, is (0, <= 0): a ligament) or compression only (its last row is (0, >= 0): a facet contact
+    strut, `spinecohort.fe.facets.strut_table`); ccx holds the force beyond the table's ends, so such a spring
+    carries nothing on one side and never joins two parts for certain."""
     out = set()
     for sec in model.sections:
         table = sec.spring_force_elongation
-        if table is not None and table[0][0] == 0.0 and table[0][1] <= 0.0:
+        if table is None:
+            continue
+        if (table[0][0] == 0.0 and table[0][1] <= 0.0) or (table[-1][0] == 0.0 and table[-1][1] >= 0.0):
             out.add(sec.elset.upper())
     return out
 

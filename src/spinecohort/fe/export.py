@@ -240,7 +240,7 @@ def fe_model(
     nucleus, `DISC_TYPE_TISSUES`: `disc_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's fibre law aborts
     with C3D8/C3D8I, and C3D8 locks the nearly incompressible nucleus), ``SURFACES`` (S3 skins), ``LIGAMENTS``
     (tension-only SPRINGA), ``CONNECTORS`` (linear SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the
-    facet nodes on their vertebra), ``FACETS`` (GAPUNI facet-joint gaps, `spinecohort.fe.facets`; element sets
+    facet nodes on their vertebra), ``FACETS`` (facet-joint contact struts, SPRINGA, `spinecohort.fe.facets`; element sets
     ``FACET_*``).  Nodes: the template's (ids 1..N, template order), then the facet nodes (materials.facets None:
     none).  Hex elements are therefore numbered bone and endplates first, then disc soft tissue, each in template
     order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model). disc_hex_type None: the disc
@@ -300,7 +300,7 @@ def fe_model(
             first += len(pairs)
     if fn is not None:
         first = sum(len(c) for _, c in blocks.values())
-        blocks["FACETS"] = ("GAPUNI", len(pts) + fn.gaps)
+        blocks["FACETS"] = (fn.element_type, len(pts) + fn.gaps)
         for i, (_, name) in enumerate(fn.sections):
             elsets[name] = np.array([first + i])
     orientations = disc_orientations(template, pts)
@@ -319,7 +319,7 @@ def fe_model(
             sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[group], rest)))
     sections += [Section(elset=name, spring_force_elongation=CONNECTOR_TABLE) for name in conn_sets]
     if fn is not None:
-        sections += [Section(elset=name, gap=gap) for gap, name in fn.sections]
+        sections += fn.section_list()
         pts = np.concatenate([pts, fn.points])
     node_sets = dict(template.nsets)
     if "PELVIS" in template.elsets and "PELVIS" not in node_sets:

@@ -1,20 +1,26 @@
-"""Facet-joint contact of every spine model: gap elements (ccx/Abaqus GAPUNI) between the articular processes
-of each joint, in the exported decks and in the ROM sub-models alike.  Units: mm, N, degrees.
+"""Facet-joint contact of every spine model: compression-only contact struts (ccx/Abaqus SPRINGA with a
+one-sided force table) between the articular processes of each joint, in the exported decks and in the ROM
+sub-models alike.  Units: mm, N, degrees.
 
 Each joint (the capsular-ligament anchors: the inferior articular process (IAP) tip of the upper vertebra and
 the superior articular process (SAP) tip of the lower one) gets
 
-* a **joint gap**: two coincident new nodes at the midpoint of the two tips, one tied to each vertebra, closing
-  along the outward normal of the SAP's joint surface (`FacetContact.normal`, textbook inclination and
-  calibrated frontal angle per level);
-* optionally an **extension stop** (`FacetContact.tip_clearance_mm`): two coincident new nodes at the IAP
-  tip, closing along the lower vertebra's cranial axis, i.e. when the tip comes down onto the lamina below.
+* a **joint contact**: a new node at the midpoint of the two tips tied to the upper vertebra, and one
+  `FacetContact.strut_length_mm` (20 mm) back along the outward normal of the SAP's joint surface tied to the
+  lower one (`FacetContact.normal`, textbook inclination and calibrated frontal angle per level); the strut
+  between them pushes once the joint has closed by its clearance;
+* optionally an **extension stop** (`FacetContact.tip_clearance_mm`): the same at the IAP tip, along the lower
+  vertebra's cranial axis, i.e. closing when the tip comes down onto the lamina below.
 
-Why coincident nodes: a gap between the two tips, 12 mm apart, closed under a rigid turn of the whole joint
-(L3 turns ~12 deg in the lumbar model), so the lumbar model came out 4x stiffer in extension than the same
-segment alone (docs/rom.md).  The new nodes hang on their vertebra by the same stiff spring truss as the arch
-(`spinecohort.fe.connections`).  A gap transmits force only when closed, so it never makes a deck one body
-(`spinecohort.fe.connectivity`).
+Why a strut along the contact direction: a spring acts along the line between its nodes as they move, so
+the contact turns with the joint and a rigid turn of the whole joint neither opens nor closes it.  The two
+earlier forms failed that: a gap between the two tips, 12 mm apart, closed under a rigid turn (the lumbar
+model 4x stiffer in extension than the same segment alone), and a GAPUNI between coincident nodes keeps its
+direction fixed in space, wrong wherever the chain below has turned the joint (T10-T11 turned ~30 deg in the
+lumbar model; its extension came out 1.90 deg there against 2.53 alone, docs/rom.md).  ``strut_length_mm``
+None still writes the coincident GAPUNI.  The new nodes hang on their vertebra by the same stiff spring
+truss as the arch (`spinecohort.fe.connections`).  A contact transmits force only when closed, so it never
+makes a deck one body (`spinecohort.fe.connectivity`).
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ Gap = tuple[float, tuple[float, float, float], float]  # clearance mm, unit dire
 
 @dataclass(frozen=True)
 class FacetContact:
-    """Facet-joint contact as gap elements (see the module docstring).
+    """Facet-joint contact as compression-only struts or gaps (see the module docstring).
 
     The joint gap acts along the outward normal of the SAP's joint surface, from the orientation of the facet
     plane: ``transverse_deg``, its angle to the transverse plane (White & Panjabi 1990: thoracic 60, lumbar
@@ -57,6 +63,10 @@ class FacetContact:
     )
     tip_clearance_mm: float | None = 1.05
     tip_stiffness_n_per_mm: float = 200.0
+    #: the contact element: a compression-only SPRINGA strut of this length (mm) along the contact direction,
+    #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose
+    #: direction stays fixed in space while the chain below turns the joint (docs/rom.md)
+    strut_length_mm: float | None = 20.0
 
     @staticmethod
     def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
@@ -88,6 +98,7 @@ class FacetContact:
             # cranial to caudal whatever the mapping's order (a release's JSON has its keys sorted)
             return tuple(sorted(((str(k), float(v)) for k, v in d.items()), key=lambda a: LEVELS.index(a[0])))
 
+        strut = cfg.get("strut_length_mm", None)  # absent: a release made before the struts (GAPUNI)
         return cls(
             float(cfg["clearance_mm"]),
             float(cfg["stiffness_n_per_mm"]),
@@ -95,6 +106,7 @@ class FacetContact:
             anchors(cfg["frontal_deg"]),
             None if tip is None else float(tip),
             float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
+            None if strut is None else float(strut),
         )
 
 
@@ -102,14 +114,58 @@ class FacetContact:
 class FacetNodes:
     """The new nodes and gap elements of the facet joints of a model.
 
-    points (M, 3) mm: the new nodes; gaps (G, 2): GAPUNI node pairs as indices into `points` (node 1 on the
-    lower vertebra, node 2 on the upper); sections: (gap, element set name) per gap element; tied: vertebra ->
-    indices into `points` of the new nodes that belong to it."""
+    points (M, 3) mm: the new nodes; gaps (G, 2): contact element node pairs as indices into `points` (node 1
+    on the lower vertebra, node 2 on the upper); sections: (gap, element set name) per contact element; tied:
+    vertebra -> indices into `points` of the new nodes that belong to it; strut_length_mm: the contact
+    element (`FacetContact.strut_length_mm`: a SPRINGA strut, None = GAPUNI)."""
 
     points: np.ndarray
     gaps: np.ndarray
     sections: list[tuple[Gap, str]]
     tied: dict[str, np.ndarray]
+    strut_length_mm: float | None = None
+
+    @property
+    def element_type(self) -> str:
+        return "GAPUNI" if self.strut_length_mm is None else "SPRINGA"
+
+    def section_list(self) -> list:
+        """One `Section` per contact element: the GAPUNI gap, or the strut's compression-only table."""
+        from spinecohort.fe.abaqus import Section
+
+        if self.strut_length_mm is None:
+            return [Section(elset=name, gap=gap) for gap, name in self.sections]
+        return [
+            Section(elset=name, spring_force_elongation=strut_table(gap[0], gap[2], self.strut_length_mm))
+            for gap, name in self.sections
+        ]
+
+
+def strut_table(
+    clearance_mm: float, stiffness_n_per_mm: float, length_mm: float, blend_mm: float = 0.05, reach_mm: float = 5.0
+) -> tuple[tuple[float, float], ...]:
+    """(force N, elongation mm) table, ascending, of a compression-only contact strut: no force until it has
+    shortened by `clearance_mm`, then `stiffness_n_per_mm` per mm of further shortening (negative force =
+    compression), the corner rounded over `blend_mm` (a quadratic: continuous slope, so ccx's Newton iterations
+    do not cycle between the two slopes) and the table carried `reach_mm` past contact (ccx holds the force
+    beyond the ends; at most half the strut, which never inverts).  A SPRINGA acts along the line between its
+    nodes as they move, so the strut turns with the joint; a GAPUNI between coincident nodes has no line and
+    keeps its direction fixed in space, which is wrong wherever the chain below has turned the joint (the top
+    segments of the lumbar model turn 25-30 deg in flexion).  Sliding along the joint by s lengthens the strut
+    by ~ s^2 / (2 length): 0.1 mm at s = 2 mm for a 20 mm strut."""
+    if not (clearance_mm >= 0 and stiffness_n_per_mm > 0 and length_mm > 0 and blend_mm > 0):
+        raise ValueError(
+            f"contact strut needs clearance >= 0, stiffness > 0, length > 0 and blend > 0, got "
+            f"{clearance_mm}, {stiffness_n_per_mm}, {length_mm}, {blend_mm}"
+        )
+    reach = min(reach_mm, 0.5 * length_mm - clearance_mm)
+    if reach <= blend_mm:
+        raise ValueError(f"contact strut of {length_mm} mm is too short for a clearance of {clearance_mm} mm")
+    k, w = stiffness_n_per_mm, blend_mm
+    depth = np.array([reach, w, 0.75 * w, 0.5 * w, 0.25 * w, 0.0])  # penetration past contact, mm
+    force = np.where(depth <= w, -k * depth**2 / (2 * w), -k * (depth - 0.5 * w))
+    rows = [(float(f), float(-clearance_mm - d)) for f, d in zip(force, depth)]
+    return tuple(rows + [(0.0, float(length_mm))])
 
 
 def facet_pairs(template: HexTemplate, allowed: np.ndarray | None = None) -> np.ndarray:
@@ -190,19 +246,28 @@ def facet_nodes(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, fa
     j = len(pairs)
     upper = [owner[int(i)] for i in pairs[:, 0]]
     lower = [owner[int(i)] for i in pairs[:, 1]]
-    blocks = [0.5 * (points[pairs[:, 0]] + points[pairs[:, 1]])] * 2  # joint: upper side, lower side
+    h = facets.strut_length_mm or 0.0  # a strut's lower node lies `h` back along the contact direction
+
+    def pair_blocks(at: np.ndarray, gaps: list[tuple[Gap, str]]) -> list[np.ndarray]:
+        direction = np.array([g[1] for g, _ in gaps]).reshape(-1, 3)
+        return [at, at - h * direction]  # upper side, lower side
+
     sections = facet_gaps(template, points, pairs, facets)
+    blocks = pair_blocks(0.5 * (points[pairs[:, 0]] + points[pairs[:, 1]]), sections)  # the joint
     if facets.tip_clearance_mm is not None:
-        blocks += [points[pairs[:, 0]]] * 2  # extension stop: at the IAP tip
-        sections += tip_gaps(template, points, pairs, facets)
+        tips = tip_gaps(template, points, pairs, facets)
+        blocks += pair_blocks(points[pairs[:, 0]], tips)  # extension stop: at the IAP tip
+        sections += tips
     pts = np.concatenate(blocks) if j else np.zeros((0, 3))
     kinds = len(blocks) // 2
     up_idx = np.concatenate([2 * k * j + np.arange(j) for k in range(kinds)]) if j else np.zeros(0, np.int64)
     lo_idx = up_idx + j
-    gaps = np.stack([lo_idx, up_idx], 1).astype(np.int64)  # GAPUNI node 1 = lower vertebra, node 2 = upper
+    gaps = np.stack([lo_idx, up_idx], 1).astype(np.int64)  # node 1 = lower vertebra, node 2 = upper
     tied: dict[str, list[int]] = {}
     for k in range(kinds):
         for i in range(j):
             tied.setdefault(upper[i], []).append(int(2 * k * j + i))
             tied.setdefault(lower[i], []).append(int(2 * k * j + j + i))
-    return FacetNodes(pts, gaps, sections, {v: np.asarray(ix, dtype=np.int64) for v, ix in tied.items()})
+    return FacetNodes(
+        pts, gaps, sections, {v: np.asarray(ix, dtype=np.int64) for v, ix in tied.items()}, facets.strut_length_mm
+    )

@@ -1,5 +1,5 @@
 """The ROM sub-model of a hex spine model: the vertebrae ``top`` ... ``bottom`` with their discs, ligaments,
-posterior-arch trusses and facet-joint gap elements, renumbered compactly, plus what the analysis needs to
+posterior-arch trusses and facet-joint contact struts, renumbered compactly, plus what the analysis needs to
 load it (the rigid top, the fixed bottom) and to read it (endplate node layers, anatomical frames).
 
 Units: mm, N, N.mm, degrees.
@@ -19,7 +19,7 @@ pelvis are fixed in vitro and here: a lumbar model fixes the S1 plate (the botto
 a functional unit fixes its whole lower vertebra (potting).  The moment acts on the top vertebra, potted
 too: one *RIGID BODY of its body and arch anchors (`spinecohort.rom.deck`).
 
-Facet joints (`spinecohort.fe.facets`, the same gaps as the exported decks): per joint a GAPUNI joint gap
+Facet joints (`spinecohort.fe.facets`, the same contacts as the exported decks): per joint a contact strut
 and, if configured, an extension stop of the inferior articular process tip on the lamina below; stand-ins for
 surface contact, which the S3 skins cannot provide here.
 
@@ -123,7 +123,7 @@ def extract_rom_model(
     hex_type: element of bone and cartilage endplates; disc_hex_type: element of the annulus and the nucleus
     (None: the same as hex_type); see docs/rom.md for why they differ.
     ligament_groups: the groups to keep (default all, ALL per ``include_all``); () = discs alone.
-    facets: facet-joint contact as one GAPUNI element per facet joint (`FacetContact`); None = no contact.
+    facets: facet-joint contact, a strut (or GAPUNI) per facet joint and stop (`FacetContact`); None = no contact.
     ribs: the specimens' rib heads as springs (`spinecohort.rom.ribs`); None = none (a spine without ribs)."""
     mats = DEFAULT_MATERIALS if materials is None else materials
     include_all = mats.include_all if include_all is None else include_all
@@ -226,10 +226,10 @@ def extract_rom_model(
             lig_counts[g] = lig_counts.get(g, 0) + 1
     if fn is not None:
         first = len(hexes) + len(lig_conn)
-        blocks["FACETS"] = ("GAPUNI", facet_conn)
-        for i, (gap, name) in enumerate(fn.sections):
+        blocks["FACETS"] = (fn.element_type, facet_conn)
+        for i, (_, name) in enumerate(fn.sections):
             elsets[name] = np.array([first + i])
-            sections.append(Section(elset=name, gap=gap))
+        sections += fn.section_list()
         lig_counts["FACET"] = len(joints)
         if facets.tip_clearance_mm is not None:
             lig_counts["FACET_TIP"] = len(joints)
