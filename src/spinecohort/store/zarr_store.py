@@ -23,9 +23,10 @@ models) then packs the bit planes.
 Sharding codec: one shard object per array per shard, index at the end with crc32c.
 
 :class:`ShardWriter` writes a shard object itself (the sharding format: the encoded inner chunks, then the
-index of (offset, nbytes) uint64 pairs and its crc32c), streaming batch by batch, so a job never holds a
-whole shard; its bytes are identical to zarr-python's own write of the same array (tested), and a second
-implementation (tensorstore) reads them (tested).
+index of (offset, nbytes) uint64 pairs and its crc32c), streaming batch by batch with ``O_DIRECT``
+(:class:`DirectWriter`, around the page cache), so a job never holds a whole shard; its bytes are identical
+to zarr-python's own write of the same array (tested), and a second implementation (tensorstore) reads them
+(tested).
 """
 
 from __future__ import annotations
