@@ -11,7 +11,8 @@ ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a
 own process with Snakemake's one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 ``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
-* per job: wall, CPU (user + system, from ``wait4``), peak RSS, bytes per node, encode CPU, CPU per phase;
+* per job: wall, CPU (user + system, from ``wait4``), of it system, the write phase's system CPU, peak RSS,
+  bytes per node, encode CPU, CPU per phase; the sha256 of every shard object (compare runs and versions);
 * bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
   chain (transpose + blosc) and nothing else, measured in this run; the store stage's CPU / floor and the
   write phase's CPU / floor;
