@@ -11,7 +11,8 @@ ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a
 own process with Snakemake's one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 ``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
-* per job: wall, CPU (user + system, from ``wait4``), peak RSS, bytes per node, encode CPU, CPU per phase;
+* per job: wall, CPU (user + system, from ``wait4``), of it system, the write phase's system CPU, peak RSS,
+  bytes per node, encode CPU, CPU per phase; the sha256 of every shard object (compare runs and versions);
 * bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
   chain (transpose + blosc) and nothing else, measured in this run; the store stage's CPU / floor and the
   write phase's CPU / floor;
@@ -333,16 +334,19 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
     records = [json.loads(Path(outs[s]["record"]).read_text()) for s in shards]
     phases = ("load", "sample", "quality", "measure", "write", "close")
     print(
-        f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'sys s':>6s} {'RSS MB':>7s} {'B/node':>7s} {'enc CPU s':>9s}  "
+        f"{'shard':>5s} {'models':>6s} {'wall s':>7s} {'CPU s':>7s} {'sys s':>6s} {'write sys s':>11s} {'RSS MB':>7s} "
+        f"{'B/node':>7s} {'enc CPU s':>9s}  "
         f"CPU s per phase ({', '.join(phases)}; quality = check + repair + Table 3)"
     )
     for s, r, rec in zip(shards, jobs, records):
         n = rec["models"][1] - rec["models"][0]
         cpu = " ".join(f"{rec[f'{k}_cpu_s']:5.1f}" for k in phases)
         print(
-            f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['sys_s']:6.1f} {r['rss_mb']:7.0f} "
+            f"{s:>5d} {n:>6d} {r['wall_s']:7.1f} {r['cpu_s']:7.1f} {r['sys_s']:6.1f} {rec['write_sys_s']:11.1f} {r['rss_mb']:7.0f} "
             f"{rec['stored_bytes'] / rec['stored_nodes']:7.3f} {rec['encode_cpu_s']:9.2f}  {cpu}"
         )
+    for s, rec in zip(shards, records):  # to compare the stored bytes across runs and code versions
+        print(f"  shard {s} sha256: " + ", ".join(f"{k} {v['sha256']}" for k, v in rec["objects"].items()))
     chk = run([sys.executable, "-c", _CHECK, str(store)])
     stage_wall = time.perf_counter() - t_stage
     bad = int(chk["out"].strip())
@@ -357,6 +361,7 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
     nodes = sum(r["stored_nodes"] for r in records)
     enc = sum(r["encode_cpu_s"] for r in records)
     write_cpu = sum(r["write_cpu_s"] for r in records)
+    write_sys = sum(r["write_sys_s"] for r in records)
     print(f"\n== {models} models in {len(shards)} shards of {a.shard_models}, {a.jobs} job(s) at a time ==")
     print(f"bytes per node: {nbytes / nodes:.3f} B/node (goal <= 5); {nbytes / 1e9:.2f} GB")
     print(
@@ -367,6 +372,10 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
         f"store-stage CPU (init + jobs + check): {stage_cpu:.1f} s -> CPU / floor = {stage_cpu / floor:.2f} "
         f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, sha256, file writes): "
         f"{write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
+    )
+    print(
+        f"write phase kernel (sys) CPU, all jobs: {write_sys:.1f} s (shard objects written with O_DIRECT, around "
+        f"the page cache: store.zarr_store.DirectWriter); check_store (O_DIRECT reads): {chk['sys_s']:.1f} s sys"
     )
     stage_sys = sum(j["sys_s"] for j in jobs) + chk["sys_s"]
     print(
