@@ -14,6 +14,11 @@ from spinecohort.layout import Layout
 DEFAULT_CONFIG = Path("config/config.yaml")
 
 
+
+def _scalars(report: dict) -> dict:
+    """The scalar entries of a repair report, for one line of output (its per-node arrays stay out)."""
+    return {k: v for k, v in report.items() if isinstance(v, (bool, int, float, str))}
+
 def _add_config_args(parser: argparse.ArgumentParser) -> None:
     """--config and --results, shared by every command that reads a pipeline's results."""
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="pipeline config (default: %(default)s)")
@@ -117,7 +122,7 @@ def _export(args: argparse.Namespace) -> int:
         moment_nmm=1000.0 * args.moment_nm,
         top=args.top,
     )
-    print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {vm.repair}")
+    print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {_scalars(vm.repair)}")
     return 0
 
 
@@ -273,7 +278,7 @@ def _personalize(args: argparse.Namespace) -> int:
             write_deck(fe, args.out, provenance=heading)
         else:
             raise ValueError(f"--out {args.out}: use a .inp or .vtu file name")
-        print(f"-> {args.out}; Jacobian check: { {k: v for k, v in rep.items() if k != 'level_offsets_mm'} }")
+        print(f"-> {args.out}; Jacobian check: {_scalars(rep)}")
     return 0
 
 
