@@ -14,10 +14,10 @@ from spinecohort.layout import Layout
 DEFAULT_CONFIG = Path("config/config.yaml")
 
 
-
 def _scalars(report: dict) -> dict:
     """The scalar entries of a repair report, for one line of output (its per-node arrays stay out)."""
     return {k: v for k, v in report.items() if isinstance(v, (bool, int, float, str))}
+
 
 def _add_config_args(parser: argparse.ArgumentParser) -> None:
     """--config and --results, shared by every command that reads a pipeline's results."""
