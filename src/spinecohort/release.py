@@ -179,8 +179,13 @@ def write_archive(path: str | Path, root: str | Path, members, prefix: str = STO
     Same files -> byte-identical archive: members in the given (sorted) order, PAX format, mtime
     ARCHIVE_MTIME, mode 0644, uid/gid 0, empty owner names, no directory entries.
     """
+    from spinecohort.store.zarr_store import DirectReader
+
     root = Path(root)
-    with open(path, "wb") as fh, tarfile.open(fileobj=fh, mode="w", format=tarfile.PAX_FORMAT, encoding="utf-8") as tar:
+    with (
+        open(path, "wb") as fh,
+        tarfile.open(fileobj=fh, mode="w", format=tarfile.PAX_FORMAT, encoding="utf-8", copybufsize=8 << 20) as tar,
+    ):
         for rel in members:
             src = root / safe_relpath(rel, f"archive member of {path}")
             info = tarfile.TarInfo(f"{prefix}/{rel}")
@@ -188,7 +193,7 @@ def write_archive(path: str | Path, root: str | Path, members, prefix: str = STO
             info.mtime, info.mode, info.type = ARCHIVE_MTIME, 0o644, tarfile.REGTYPE
             info.uid = info.gid = 0
             info.uname = info.gname = ""
-            with open(src, "rb") as f:
+            with DirectReader(src) as f:  # read once: around the page cache (the store's shard objects)
                 tar.addfile(info, f)
     return Path(path)
 
