@@ -16,8 +16,8 @@ Why a strut along the contact direction: a spring acts along the line between it
 the contact turns with the joint and a rigid turn of the whole joint neither opens nor closes it.  The two
 earlier forms failed that: a gap between the two tips, 12 mm apart, closed under a rigid turn (the lumbar
 model 4x stiffer in extension than the same segment alone), and a GAPUNI between coincident nodes keeps its
-direction fixed in space, wrong wherever the chain below has turned the joint (T10-T11 turned ~30 deg in the
-lumbar model; its extension came out 1.90 deg there against 2.53 alone, docs/rom.md).  ``strut_length_mm``
+direction fixed in space, wrong wherever the chain below has turned the joint (T11 turned 32 deg in the lumbar
+model's flexion; T10-T11's extension came out 1.90 deg there against 2.53 alone, docs/rom.md).  ``strut_length_mm``
 None still writes the coincident GAPUNI.  The new nodes hang on their vertebra by the same stiff spring
 truss as the arch (`spinecohort.fe.connections`).  A contact transmits force only when closed, so it never
 makes a deck one body (`spinecohort.fe.connectivity`).
@@ -112,7 +112,7 @@ class FacetContact:
 
 @dataclass
 class FacetNodes:
-    """The new nodes and gap elements of the facet joints of a model.
+    """The new nodes and contact elements of the facet joints of a model.
 
     points (M, 3) mm: the new nodes; gaps (G, 2): contact element node pairs as indices into `points` (node 1
     on the lower vertebra, node 2 on the upper); sections: (gap, element set name) per contact element; tied:
@@ -150,8 +150,8 @@ def strut_table(
     do not cycle between the two slopes) and the table carried `reach_mm` past contact (ccx holds the force
     beyond the ends; at most half the strut, which never inverts).  A SPRINGA acts along the line between its
     nodes as they move, so the strut turns with the joint; a GAPUNI between coincident nodes has no line and
-    keeps its direction fixed in space, which is wrong wherever the chain below has turned the joint (the top
-    segments of the lumbar model turn 25-30 deg in flexion).  Sliding along the joint by s lengthens the strut
+    keeps its direction fixed in space, which is wrong wherever the chain below has turned the joint (in the
+    lumbar model's flexion L5 turns 9 deg, T11 32 deg).  Sliding along the joint by s lengthens the strut
     by ~ s^2 / (2 length): 0.1 mm at s = 2 mm for a 20 mm strut."""
     if not (clearance_mm >= 0 and stiffness_n_per_mm > 0 and length_mm > 0 and blend_mm > 0):
         raise ValueError(
@@ -163,7 +163,7 @@ def strut_table(
         raise ValueError(f"contact strut of {length_mm} mm is too short for a clearance of {clearance_mm} mm")
     k, w = stiffness_n_per_mm, blend_mm
     depth = np.array([reach, w, 0.75 * w, 0.5 * w, 0.25 * w, 0.0])  # penetration past contact, mm
-    force = np.where(depth <= w, -k * depth**2 / (2 * w), -k * (depth - 0.5 * w))
+    force = np.where(depth <= w, -k * depth**2 / (2 * w), -k * (depth - 0.5 * w)) + 0.0  # no -0.0 in decks
     rows = [(float(f), float(-clearance_mm - d)) for f, d in zip(force, depth)]
     return tuple(rows + [(0.0, float(length_mm))])
 
