@@ -332,62 +332,35 @@ def file_sha256(path: str | Path) -> str:
 
 
 def object_sha256(path: str | Path) -> str:
-    """Hex sha256 of a shard object, read with ``O_DIRECT`` (around the page cache, as :class:`DirectWriter`
-    wrote it) into two page-aligned buffers, the next one read by a thread while this one is hashed (both
-    calls release the GIL).  The same digest as :func:`file_sha256`, which it falls back to on a file system
-    that refuses ``O_DIRECT``.  A cold buffered read of the 12.9 GB store cost ~21 s of kernel CPU for its
+    """Hex sha256 of a shard object, read with ``O_DIRECT`` (:class:`DirectReader`: around the page cache, as
+    :class:`DirectWriter` wrote it, the next buffer read by a thread while this one is hashed).  The same
+    digest as :func:`file_sha256`.  A cold buffered read of the 12.9 GB store cost ~21 s of kernel CPU for its
     page-cache pages, this ~1 s (docs/store.md)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_DIRECT)
-    except (AttributeError, OSError) as e:
-        if isinstance(e, OSError) and e.errno != errno.EINVAL:
-            raise
-        return file_sha256(path)
-    h, bufs = hashlib.sha256(), [mmap.mmap(-1, DirectWriter.BUFFER) for _ in range(2)]
-    try:
-        with ThreadPoolExecutor(1) as pool:
-            try:
-                n = os.readv(fd, [bufs[0]])
-            except OSError as e:
-                if e.errno != errno.EINVAL:
-                    raise
-                return file_sha256(path)  # the flag was taken but the I/O refused
-            i, done = 0, 0
-            while n:
-                full = n == DirectWriter.BUFFER
-                ahead = pool.submit(os.readv, fd, [bufs[1 - i]]) if full else None
-                with memoryview(bufs[i]) as view:
-                    h.update(view[:n])
-                done += n
-                if ahead is None:
-                    break
-                n, i = ahead.result(), 1 - i
-            with open(path, "rb") as f:  # after a short read (end of file): anything left, unaligned
-                f.seek(done)
-                for block in iter(lambda: f.read(1 << 20), b""):
-                    h.update(block)
-    finally:
-        os.close(fd)
-        for b in bufs:
-            b.close()
+    h = hashlib.sha256()
+    with DirectReader(path) as r:
+        for block in r.blocks():
+            h.update(block)
     return h.hexdigest()
 
 
 class DirectReader:
     """Read one file sequentially with ``O_DIRECT`` (around the page cache, as :class:`DirectWriter` wrote
-    it), as a binary file object whose ``read(n)`` gives exactly the file's bytes: the release tars the
-    store with it, which would otherwise pay the kernel ~21-29 s of CPU for the page-cache pages of 12.9 GB
-    it reads once (docs/store.md).  Whole aligned buffers of ``DirectWriter.BUFFER`` bytes; the tail after a
-    short read (end of file, unaligned) and any file system that refuses ``O_DIRECT`` go by ordinary reads."""
+    it): ``blocks()`` yields it buffer by buffer without a copy (`object_sha256`), ``read(n)`` is a binary file
+    object's (the release tars the store with it, which would otherwise pay the kernel ~21-29 s of CPU for the
+    page-cache pages of 12.9 GB it reads once; docs/store.md).  Two page-aligned buffers of
+    ``DirectWriter.BUFFER`` bytes, the next one read by a thread while the caller uses this one (``readv``
+    releases the GIL); the tail after a short read (end of file, unaligned) and any file system that refuses
+    ``O_DIRECT`` (at the open or the first read) go by ordinary reads."""
 
     def __init__(self, path: str | Path):
+        from concurrent.futures import ThreadPoolExecutor
+
         self._path, self._fd, self._file = Path(path), -1, None
-        self._buf = mmap.mmap(-1, DirectWriter.BUFFER)
-        self._view = memoryview(self._buf)
-        self._start = self._end = 0  # unread bytes of the buffer: view[start:end]
-        self._done = 0  # file bytes read into the buffer so far
+        self._bufs = [mmap.mmap(-1, DirectWriter.BUFFER) for _ in range(2)]
+        self._views = [memoryview(b) for b in self._bufs]
+        self._cur, self._start, self._end = 0, 0, 0  # unread bytes: views[cur][start:end]
+        self._done = 0  # file bytes read into the buffers so far
+        self._pool, self._ahead = ThreadPoolExecutor(1), None
         try:
             self._fd = os.open(self._path, os.O_RDONLY | os.O_DIRECT)
         except (AttributeError, OSError) as e:
@@ -396,55 +369,75 @@ class DirectReader:
             self._file = open(self._path, "rb")
 
     def _buffered_from(self, offset: int) -> None:
-        if self._fd >= 0:
-            os.close(self._fd)
-            self._fd = -1
+        os.close(self._fd)
+        self._fd = -1
         self._file = open(self._path, "rb")
         self._file.seek(offset)
 
-    def _fill(self) -> bool:
-        """Refill the buffer by one O_DIRECT read; False once the rest must be read buffered."""
+    def _fill(self) -> None:
+        """Make the next buffer current (read ahead, or now); after a short read the rest goes buffered."""
+        nxt = 1 - self._cur if self._ahead is not None else self._cur
         try:
-            n = os.readv(self._fd, [self._buf])
+            n = self._ahead.result() if self._ahead is not None else os.readv(self._fd, [self._bufs[nxt]])
         except OSError as e:
             if e.errno != errno.EINVAL:
                 raise
+            self._ahead = None
             self._buffered_from(self._done)  # the flag was taken but the I/O refused
-            return False
-        self._start, self._end = 0, n
+            return
+        self._ahead = None
+        self._cur, self._start, self._end = nxt, 0, n
         self._done += n
-        if n < DirectWriter.BUFFER:  # end of file (or a short read): anything after it, buffered
+        if n == DirectWriter.BUFFER:
+            self._ahead = self._pool.submit(os.readv, self._fd, [self._bufs[1 - nxt]])
+        else:  # end of file (or a short read): anything after it, buffered
             self._buffered_from(self._done)
-        return n > 0
+
+    def blocks(self):
+        """The file's bytes as consecutive memoryviews, each valid until the next one is asked for."""
+        while True:
+            if self._start < self._end:
+                view = self._views[self._cur][self._start : self._end]
+                self._start = self._end
+                try:
+                    yield view
+                finally:
+                    view.release()  # the buffer is read into again, and closing it needs no view left
+            elif self._file is not None:
+                yield from iter(lambda: self._file.read(DirectWriter.BUFFER), b"")
+                return
+            else:
+                self._fill()
 
     def read(self, size: int = -1) -> bytes:
-        out = []
-        want = float("inf") if size is None or size < 0 else size
-        got = 0
-        while got < want:
+        out, got = [], 0
+        while size is None or size < 0 or got < size:
             if self._start < self._end:
-                k = int(min(want - got, self._end - self._start))
-                out.append(bytes(self._view[self._start : self._start + k]))
+                k = self._end - self._start if size is None or size < 0 else min(size - got, self._end - self._start)
+                out.append(bytes(self._views[self._cur][self._start : self._start + k]))
                 self._start += k
                 got += k
             elif self._file is not None:
-                rest = self._file.read(-1 if want == float("inf") else int(want - got))
-                if rest:
-                    out.append(rest)
+                out.append(self._file.read(-1 if size is None or size < 0 else size - got))
                 break
-            elif not self._fill() and self._start >= self._end and self._file is None:
-                break
+            else:
+                self._fill()
         return b"".join(out)
 
     def close(self) -> None:
+        if self._ahead is not None:
+            self._ahead.exception()  # let the read in flight finish before its buffer goes
+            self._ahead = None
+        self._pool.shutdown()
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
         if self._file is not None:
             self._file.close()
-        if not self._buf.closed:
-            self._view.release()
-            self._buf.close()
+        for v, b in zip(self._views, self._bufs):
+            if not b.closed:
+                v.release()
+                b.close()
 
     def __enter__(self) -> DirectReader:
         return self
