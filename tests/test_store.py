@@ -347,28 +347,29 @@ def test_rejected_input_leaves_a_finished_shard_untouched(tmp_path):
     assert _files(path) == before and S.check_store(path) == [1, 2]
 
 
+def _refuse_o_direct(monkeypatch, call: str) -> None:
+    """Make ``os.<call>`` (open, write or readv) of the store module fail with EINVAL for O_DIRECT, as a file
+    system that refuses it does (at the open, or having taken the flag, at the first I/O); "" = no change."""
+    if not call:
+        return
+    real = getattr(os, call)
+
+    def refusing(first, *rest):
+        flags = rest[0] if call == "open" else fcntl.fcntl(first, fcntl.F_GETFL)  # open(path, flags), io(fd, ...)
+        direct = flags & os.O_DIRECT
+        if direct:
+            raise OSError(errno.EINVAL, "no O_DIRECT here")
+        return real(first, *rest)
+
+    monkeypatch.setattr(S.os, call, refusing)
+
+
 @pytest.mark.parametrize("refuse", ["", "open", "readv"])
 def test_direct_reader_gives_exactly_the_file_bytes_in_any_read_sizes(tmp_path, monkeypatch, refuse):
     # the release tars the store through DirectReader: whole aligned O_DIRECT buffers, the unaligned tail and
     # a file system refusing O_DIRECT (at the open or the first read) by ordinary reads; the bytes must be the
     # file's whatever the read sizes (tarfile asks copybufsize at a time, a last short piece)
-    real_open, real_readv = os.open, os.readv
-    if refuse == "open":
-
-        def fake_open(path, flags, *a):
-            if flags & os.O_DIRECT:
-                raise OSError(errno.EINVAL, "no O_DIRECT here")
-            return real_open(path, flags, *a)
-
-        monkeypatch.setattr(S.os, "open", fake_open)
-    elif refuse == "readv":
-
-        def fake_readv(fd, bufs):
-            if fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_DIRECT:
-                raise OSError(errno.EINVAL, "no O_DIRECT here")
-            return real_readv(fd, bufs)
-
-        monkeypatch.setattr(S.os, "readv", fake_readv)
+    _refuse_o_direct(monkeypatch, refuse)
     rng = np.random.default_rng(5)
     buf = S.DirectWriter.BUFFER
     for size in (0, 1, 4096, buf, buf + 1, 2 * buf + 12345):
@@ -391,23 +392,7 @@ def test_direct_reader_gives_exactly_the_file_bytes_in_any_read_sizes(tmp_path, 
 def test_direct_writes_and_reads_hold_exactly_the_bytes_given(tmp_path, monkeypatch, refuse):
     # O_DIRECT goes through whole aligned buffers and a zero-padded, truncated tail; a file system that
     # refuses O_DIRECT at open or at the first write gets the same bytes by ordinary I/O
-    real_open, real_write = os.open, os.write
-    if refuse == "open":
-
-        def fake_open(path, flags, *a):
-            if flags & os.O_DIRECT:
-                raise OSError(errno.EINVAL, "no O_DIRECT here")
-            return real_open(path, flags, *a)
-
-        monkeypatch.setattr(S.os, "open", fake_open)
-    elif refuse == "write":
-
-        def fake_write(fd, data):
-            if fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_DIRECT:
-                raise OSError(errno.EINVAL, "no O_DIRECT here")
-            return real_write(fd, data)
-
-        monkeypatch.setattr(S.os, "write", fake_write)
+    _refuse_o_direct(monkeypatch, refuse)
     rng = np.random.default_rng(3)
     buf = S.DirectWriter.BUFFER
     for sizes in ([], [1], [4096], [buf], [buf + 1, 3], [5000] * 3000, [2 * buf + 12345]):
