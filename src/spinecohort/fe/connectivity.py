@@ -23,7 +23,7 @@ class ConnectivityError(ValueError):
     """A deck has parts that are not connected to its fixed nodes."""
 
 
-def tension_only_sets(model: FEModel) -> set[str]:
+def one_sided_sets(model: FEModel) -> set[str]:
     """Upper-case names of the one-sided SPRINGA sections: tension only (the table's first row, the smallest
     elongation, is (0, <= 0): a ligament) or compression only (its last row is (0, >= 0): a facet contact
     strut, `spinecohort.fe.facets.strut_table`); ccx holds the force beyond the table's ends, so such a spring
@@ -45,7 +45,7 @@ def _connecting_mask(model: FEModel) -> np.ndarray:
     for name, (etype, conn) in model.element_blocks.items():
         if etype in NON_CONNECTING_TYPES:
             keep[offsets[name] : offsets[name] + len(conn)] = False
-    slack = tension_only_sets(model)
+    slack = one_sided_sets(model)
     for name, (_, conn) in model.element_blocks.items():
         if name.upper() in slack:
             keep[offsets[name] : offsets[name] + len(conn)] = False
