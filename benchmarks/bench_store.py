@@ -198,6 +198,19 @@ def _explore_values(x64: np.ndarray, q) -> np.ndarray:
     return (np.rint(x64 * 2.0**q) / 2.0**q).astype(np.float32)
 
 
+def _encode_chunks(codec, vals: np.ndarray, per: int, order) -> tuple[int, float, int]:
+    """(compressed bytes, encode CPU s, raw bytes) of ``vals`` (B, N, 3) encoded by ``codec`` in chunks of
+    ``per`` models stored in axis ``order`` (as the store writes its inner chunks); only the encode is timed."""
+    nbytes, cpu, raw = 0, 0.0, 0
+    for i in range(0, len(vals), per):
+        c = np.ascontiguousarray(vals[i : i + per].transpose(order))
+        t0 = time.process_time()
+        nbytes += len(codec.encode(c))
+        cpu += time.process_time() - t0
+        raw += c.nbytes
+    return nbytes, cpu, raw
+
+
 def explore_batches(results: Layout, sample: str):
     """The models of ``sample`` (EXPLORE_SAMPLES) batch by batch: (tri (B, N, 3), hex (B, n, 3)) float64 mm,
     sampled with the disc-contact distraction exactly as the shard job does."""
@@ -255,13 +268,10 @@ def explore(results: Layout, sample: str, measure_cfg: dict) -> None:
             q, per, order, clevel, shuffle, block = v
             codec = Zstd(3) if clevel == 0 else Blosc("zstd", clevel, shuffle, block << 10)
             for k, x in enumerate((t, h)):
-                vals = _explore_values(x, q)
-                for i in range(0, len(vals), per):
-                    c = np.ascontiguousarray(vals[i : i + per].transpose(order))
-                    t0 = time.process_time()
-                    acc[v][k] += len(codec.encode(c))
-                    acc[v][2] += time.process_time() - t0
-                    raw[v] += c.nbytes
+                nbytes, cpu, nraw = _encode_chunks(codec, _explore_values(x, q), per, order)
+                acc[v][k] += nbytes
+                acc[v][2] += cpu
+                raw[v] += nraw
     n = sum(map(len, EXPLORE_SAMPLES[sample]))
     print(f"\nExplore ({sample}: {n} models, {n_tri // n} tri + {n_hex // n} hex nodes each), core codecs only")
     print(
@@ -472,22 +482,15 @@ def explore_orders(results: Layout, sample: str, vertical, blocks_kib=(224, 128,
         n_tri += t.shape[0] * t.shape[1]
         n_hex += h.shape[0] * h.shape[1]
         copies += int(np.count_nonzero((h[:, n_vol:] == t[:, surface]).all(axis=2)))
-        vol = S.quantize_mm(h[:, :n_vol])
-        for i in range(0, len(vol), per):
-            vol_bytes += len(
-                codecs[blocks_kib[0]].encode(np.ascontiguousarray(vol[i : i + per].transpose(S.CHUNK_ORDER)))
-            )
+        vol_bytes += _encode_chunks(codecs[blocks_kib[0]], S.quantize_mm(h[:, :n_vol]), per, S.CHUNK_ORDER)[0]
         for a, x in enumerate((t, h)):
             vals = S.quantize_mm(x)
             for o, perm in orders.items():
-                moved = vals[:, perm[a]]
-                for i in range(0, len(moved), per):
-                    c = np.ascontiguousarray(moved[i : i + per].transpose(S.CHUNK_ORDER))
-                    for b in blocks_kib:
-                        t0 = time.process_time()
-                        acc[o, b][a] += len(codecs[b].encode(c))
-                        acc[o, b][2] += time.process_time() - t0
-                        raw[o, b] += c.nbytes
+                for b in blocks_kib:
+                    nbytes, cpu, nraw = _encode_chunks(codecs[b], vals[:, perm[a]], per, S.CHUNK_ORDER)
+                    acc[o, b][a] += nbytes
+                    acc[o, b][2] += cpu
+                    raw[o, b] += nraw
     n = sum(map(len, EXPLORE_SAMPLES[sample]))
     print(
         f"\nNode orders ({sample}: {n} models, {n_tri // n} tri + {n_hex // n} hex nodes each); float32 / 2^-10 mm, "
