@@ -87,15 +87,15 @@ def main() -> int:
     t = pd.DataFrame(rows)
     z = zarr.open_group(str(r / "cohort.zarr"), mode="r")
     attrs = dict(z.attrs)
-    nodes = z["tri/points"].shape[1] + z["hex/points"].shape[1]
+    nodes = z["tri/points"].shape[1] + attrs["n_hex_nodes"]  # per model node, as the shard records count
     pd.set_option("display.width", 200)
     print(t.round(3).to_string(index=False))
     print(
         f"\nsnakemake -j2 wall time: {wall:.0f} s for {len(shards)} of {n_sh} shards "
         f"({t['models'].sum()} models, {nodes} nodes per model: tri {z['tri/points'].shape[1]} + hex "
-        f"{z['hex/points'].shape[1]}, encoding {attrs['encoding']})"
+        f"{attrs['n_hex_nodes']} ({z['hex/volume_points'].shape[1]} stored), encoding {attrs['encoding']})"
     )
-    print(f"bytes per stored node: {t['bytes'].sum() / (t['models'].sum() * nodes):.2f}")
+    print(f"bytes per model node: {t['bytes'].sum() / (t['models'].sum() * nodes):.2f}")
     job_s = t["sample_s"].sum()
     print(
         f"sample_shard: {t['sample_models_per_s'].median():.1f} models/s (median), peak RSS "

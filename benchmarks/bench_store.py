@@ -64,11 +64,13 @@ print(len(shard_problems(sys.argv[1])))
 _READ = """
 import sys, time
 t0 = time.perf_counter()
+import numpy as np
 import zarr
 t1 = time.perf_counter()
 z = zarr.open(sys.argv[1], mode="r")
 i = int(sys.argv[2])
-tri, hexp = z["tri/points"][i], z["hex/points"][i]
+tri = z["tri/points"][i]
+hexp = np.concatenate([z["hex/volume_points"][i], tri[z["hex/surface_vertex"][:]]])  # the whole hex model
 print(time.perf_counter() - t1, t1 - t0, tri.shape[0], hexp.shape[0])
 """
 
@@ -557,7 +559,19 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
         n_tri = z["mean"].shape[0]
     with np.load(inputs["hex_ssm"]) as z:
         n_hex = z["mean"].shape[0]
-    S.create_store(store, n_tri, n_hex, grid["n_modes"], grid["levels"], a.shard_models, {}, cfg["store"]["encoding"])
+    with np.load(inputs["template"]) as z:
+        surface_vertex = z["surface_vertex"]
+    S.create_store(
+        store,
+        n_tri,
+        n_hex,
+        grid["n_modes"],
+        grid["levels"],
+        a.shard_models,
+        {},
+        cfg["store"]["encoding"],
+        surface_vertex=surface_vertex,
+    )
     init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
     print(
         f"store: {total} models x ({n_tri} tri + {n_hex} hex nodes), shards of {a.shard_models}, "

@@ -35,7 +35,15 @@ def hex_ssm(template, ssm, small_cohort):
 def one_pass(tmp_path_factory, ssm, hex_ssm, template, small_cohort):
     """Shard 1 processed in one pass (batches of 6 models = 2 store chunks of 3, the last batch 3)."""
     path = tmp_path_factory.mktemp("store") / "cohort.zarr"
-    create_store(path, ssm.mean.shape[0], hex_ssm.mean.shape[0], N_MODES, LEVELS, shard_models=9)
+    create_store(
+        path,
+        ssm.mean.shape[0],
+        hex_ssm.mean.shape[0],
+        N_MODES,
+        LEVELS,
+        shard_models=9,
+        surface_vertex=template.surface_vertex,
+    )
     ids, w = shard_models_of(path, 1)
     lm = small_cohort.landmarks
     writer = ShardWriter(path, 1)
@@ -59,14 +67,19 @@ def test_shard_ids_and_weights_come_from_the_store(shard1):
     assert w[0].tolist() == [0.0, -1.0, -1.0]  # model 9 = digits (1, 0, 0)
 
 
-def test_stored_models_equal_the_ssm_formula_within_the_error_bound(shard1, ssm, hex_ssm):
+def test_stored_models_equal_the_ssm_formula_within_the_error_bound(shard1, ssm, hex_ssm, template):
     path, ids, w, quality = shard1
     bound = error_bound_mm("float32-q10")  # half the 2^-10 mm quantum = 0.00049 mm
     tri = read_shard(path, 1, "tri/points")
-    hexp = read_shard(path, 1, "hex/points")
+    hexp = read_shard(path, 1, "hex")
     assert np.abs(tri - ssm.sample(w)).max() <= bound
     untouched = ~quality["repaired"].to_numpy()
     assert np.abs(hexp[untouched] - hex_ssm.sample(w[untouched])).max() <= bound
+    # only the volume nodes are stored again: the surface nodes are the tri vertices, bitwise
+    import zarr
+
+    assert zarr.open_group(str(path), mode="r")["hex/volume_points"].shape[1] == template.n_hex_nodes
+    assert np.array_equal(hexp[:, template.n_hex_nodes :], tri[:, template.surface_vertex])
     # the batched float32 sampler is the formula too (before any quantization: float32 rounding only)
     t32, h32 = sample_points(ssm, hex_ssm, w, chunk=4)
     assert np.abs(t32 - ssm.sample(w)).max() < 1e-4 and np.abs(h32 - hex_ssm.sample(w)).max() < 1e-4
@@ -74,7 +87,7 @@ def test_stored_models_equal_the_ssm_formula_within_the_error_bound(shard1, ssm,
 
 def test_every_stored_model_has_positive_scaled_jacobians(shard1, template):
     path, _, _, quality = shard1
-    hexp = read_shard(path, 1, "hex/points").astype(float)
+    hexp = read_shard(path, 1, "hex").astype(float)
     n = template.n_hex_nodes
     sj = np.array([scaled_jacobian(h[:n], template.hexes).min() for h in hexp])
     assert (sj > 0).all() and (quality["invalid_after"] == 0).all()
@@ -87,7 +100,7 @@ def test_mean_model_measured_from_the_store_equals_the_ssm_mean(shard1, ssm, tem
     path, ids, w, _ = shard1
     lm = small_cohort.landmarks
     params, diff = measure_shard(
-        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex/points"), w, ids, lm, hex_landmarks(template, lm)
+        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex"), w, ids, lm, hex_landmarks(template, lm)
     )
     row = params.set_index("model_id").loc["model_00013"]
     truth = measure(ssm.mean, lm).iloc[0]
@@ -111,7 +124,7 @@ def test_parameters_of_the_one_pass_equal_those_of_the_stored_coordinates(one_pa
     path, ids, w, _, params, diff = one_pass
     lm = small_cohort.landmarks
     again, diff_again = measure_shard(
-        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex/points"), w, ids, lm, hex_landmarks(template, lm)
+        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex"), w, ids, lm, hex_landmarks(template, lm)
     )
     assert params["model_id"].tolist() == again["model_id"].tolist() == [f"model_{i:05d}" for i in range(9, 18)]
     checked = set()

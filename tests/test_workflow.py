@@ -194,14 +194,14 @@ def run_copy(test_run, tmp_path):
 def test_a_corrupted_shard_is_detected_and_only_it_is_rebuilt(run_copy):
     store = run_copy / "results" / "cohort.zarr"
     before = _store_files(store)
-    obj = store / "hex" / "points" / "c" / "1" / "0" / "0"
+    obj = store / "hex" / "volume_points" / "c" / "1" / "0" / "0"
     data = bytearray(obj.read_bytes())
     data[len(data) // 2] ^= 0x01  # one flipped bit, same size: only the sha256 can tell
     obj.write_bytes(bytes(data))
     # the rule fails naming the shard and what to do
     proc = run(run_copy, "--forcerun", "check_store", "results/store_check.csv")
     assert proc.returncode != 0
-    assert "shard 00001: hex/points/c/1/0/0 is corrupt" in proc.stderr and "check-store" in proc.stderr
+    assert "shard 00001: hex/volume_points/c/1/0/0 is corrupt" in proc.stderr and "check-store" in proc.stderr
     cli = [sys.executable, "-m", "spinecohort.cli", "check-store", str(store)]
     proc = subprocess.run(cli, capture_output=True, text=True)
     assert proc.returncode == 1 and "shard 00001" in proc.stdout
@@ -225,7 +225,7 @@ def test_a_shard_job_killed_mid_write_leaves_no_record_and_the_rerun_is_byte_ide
     for f in (run_copy / "results" / "shards").glob("00002.*"):
         f.unlink()
     (run_copy / "results" / "store_check.csv").unlink()
-    # the job writes tri/points, then is SIGKILLed before hex/points (a node failure mid-write)
+    # the job writes tri/points, then is SIGKILLed before hex/volume_points (a node failure mid-write)
     env = {**os.environ, FAULT_KILL_ENV: "2"}
     proc = subprocess.run(
         [

@@ -62,7 +62,7 @@ RELEASE_JSON = f"{MODEL_INPUTS}/release.json"
 #: 2000-01-01T00:00:00Z: a fixed member mtime (some tools treat 0 as "unknown").
 ARCHIVE_MTIME = 946684800
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
-_SHARD_FILE = re.compile(r"^(?:(?:tri/points|hex/points)/c/(\d+)/|weights/c/(\d+)/|checksums/shard_(\d+)/)")
+_SHARD_FILE = re.compile(r"^(?:(?:tri/points|hex/volume_points)/c/(\d+)/|weights/c/(\d+)/|checksums/shard_(\d+)/)")
 _CTRL = re.compile(r"[\x00-\x1f\x7f\\]")
 
 
@@ -288,7 +288,7 @@ def release_counts(
     from spinecohort.store.zarr_store import _open_meta, model_id
 
     root, meta = _open_meta(store)
-    n_tri, n_hex = int(root["tri/points"].shape[1]), int(root["hex/points"].shape[1])
+    n_tri, n_hex = int(root["tri/points"].shape[1]), int(meta["n_hex_nodes"])
     with np.load(template_npz, allow_pickle=False) as z:
         n_hex_elements = int(z["hexes"].shape[0])
     levels = [float(v) for v in meta["levels"]]

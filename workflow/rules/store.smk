@@ -11,6 +11,7 @@ rule init_store:
     input:
         ssm=L.ssm,
         hex_ssm=L.hex_ssm,
+        template=L.template,
     output:
         L.store_initialized,
     log:

@@ -12,6 +12,8 @@ with to_file(snakemake.log[0]) as log:
         n_tri = z["mean"].shape[0]
     with np.load(snakemake.input.hex_ssm) as z:
         n_hex = z["mean"].shape[0]
+    with np.load(snakemake.input.template) as z:  # the hex nodes that are tri vertices: stored once
+        surface_vertex = z["surface_vertex"]
     path = Path(snakemake.output[0]).parent
     attrs = {
         "ssm_sha256": file_sha256(snakemake.input.ssm),
@@ -29,13 +31,16 @@ with to_file(snakemake.log[0]) as log:
         attrs=attrs,
         encoding=settings["encoding"],
         overwrite=True,
+        surface_vertex=surface_vertex,
     )
     log.info(
-        "%s: %d models x (%d tri + %d hex nodes) in %d shards of %d, encoding %s (error bound %.2g mm)",
+        "%s: %d models x (%d tri + %d hex nodes, %d of them stored once as tri vertices) in %d shards of %d, "
+        "encoding %s (error bound %.2g mm)",
         path,
         root.attrs["n_models"],
         n_tri,
         n_hex,
+        len(surface_vertex),
         root.attrs["n_shards"],
         settings["shard_models"],
         settings["encoding"],

@@ -35,7 +35,7 @@ from spinecohort.mesh.quality import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
-from spinecohort.store.zarr_store import model_name
+from spinecohort.store.zarr_store import model_name, vertex_selector
 
 #: models sampled per float64 batch: 49 x 81k nodes x 3 x 8 B = 95 MB per array
 DEFAULT_CHUNK = 49
@@ -258,8 +258,16 @@ def process_shard(
     if len(ids) != len(w):
         raise ValueError(f"{len(w)} weights but {len(ids)} model IDs")
     m = w.shape[1]
+    n_vol = template.n_hex_nodes
+    if n_vol + len(template.surface_vertex) != len(hex_ssm.mean):
+        raise ValueError(
+            f"the template's {n_vol} + {len(template.surface_vertex)} nodes are not the hex SSM's {len(hex_ssm.mean)}"
+        )
+    sv = vertex_selector(template.surface_vertex)
     df_tri = ssm.deformation_fields(m).reshape(m, -1)
-    df_hex = hex_ssm.fields[:m].reshape(m, -1)
+    # the surface nodes are tri vertices (transfer_fields copies their fields): only the volume nodes are formed
+    df_vol = np.ascontiguousarray(hex_ssm.fields[:m, :n_vol]).reshape(m, -1)
+    vol_mean = hex_ssm.mean[:n_vol]
     phases = ("sample", "quality", "measure", "write")
     # wall, CPU (user + system) and of it system (kernel) time per phase
     timing = {f"{k}{unit}": 0.0 for unit in ("_s", "_cpu_s", "_sys_s") for k in phases}
@@ -279,6 +287,7 @@ def process_shard(
     # faults than the products that fill them
     t_buf = np.empty((min(batch, len(w)), *ssm.mean.shape))
     h_buf = np.empty((min(batch, len(w)), *hex_ssm.mean.shape))
+    v_buf = np.empty((min(batch, len(w)), n_vol, 3))
     # whole batches through every phase: taking one 7-model store chunk at a time from sampling to the write,
     # while it is in the cache, saved ~0.8 s of a shard's write phase and cost as much in per-chunk fixed
     # costs (17 endplate plane fits, kernel and table set-up per call; measured, docs/store.md)
@@ -288,10 +297,14 @@ def process_shard(
         t64, h64 = t_buf[: len(wb)], h_buf[: len(wb)]
         np.matmul(wb, df_tri, out=t64.reshape(len(wb), -1))
         t64 += ssm.mean
-        np.matmul(wb, df_hex, out=h64.reshape(len(wb), -1))
-        h64 += hex_ssm.mean
-        if hex_ssm.contact is not None:
+        v64 = v_buf[: len(wb)]
+        np.matmul(wb, df_vol, out=v64.reshape(len(wb), -1))
+        np.add(v64, vol_mean, out=h64[:, :n_vol])
+        if hex_ssm.contact is not None:  # gaps and offsets come from the endplate (volume) nodes
             gaps, offsets = resolve_contact(t64, h64, hex_ssm.contact)
+        # the surface nodes are their tri vertices, distracted or not: copied, so that they are bitwise the
+        # tri vertices and the store keeps them once (hex/surface_vertex)
+        h64[:, n_vol:] = t64[:, sv]
         at = tick("sample", at)
         # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds
         q, table3 = _quality_frames(ib, *_check_models(h64, qi, wb, ib, repair, log))
@@ -304,7 +317,7 @@ def process_shard(
         p_hex.append(measure(h64, hex_lm, **measure_kw))
         at = tick("measure", at)
         if writer is not None:
-            writer.add(t64, h64)
+            writer.add(t64, h64[:, :n_vol])
         tick("write", at)
     p_tri = pd.concat(p_tri, ignore_index=True)
     p_hex = pd.concat(p_hex, ignore_index=True)
@@ -477,7 +490,8 @@ def run_shard_job(
         close_cpu_s=time.process_time() - c1,  # index, renames, weights, sidecar and the three CSV files
         encode_cpu_s=writer.encode_cpu_s,
         stored_bytes=writer.stored_bytes,
-        stored_nodes=len(ids) * sum(writer.n_nodes.values()),
+        # per node of the models held (tri + whole hex model), as format 3 counted: comparable across formats
+        stored_nodes=len(ids) * (writer.n_nodes["tri/points"] + writer.n_hex_nodes),
         wall_s=wall,
         models_per_s=len(ids) / wall,
         models_inverted=int((quality["invalid_before"] > 0).sum()),

@@ -2,11 +2,25 @@
 
 Layout (one store, written shard by shard by independent jobs)::
 
-    weights      (n_models, n_modes)        float64, SD units; one chunk per shard (zstd)
-    tri/points   (n_models, n_tri_nodes, 3) float32 mm; chunk_models models per inner chunk, shard_models per shard
-    hex/points   (n_models, n_hex_nodes, 3) float32 mm; same chunking
-    checksums/shard_NNNNN                   per-shard group whose attributes hold the sha256 of the shard's
-                                            stored objects; written last, atomically: the completion mark
+    weights            (n_models, n_modes)           float64, SD units; one chunk per shard (zstd)
+    tri/points         (n_models, n_tri_nodes, 3)    float32 mm; chunk_models models per inner chunk,
+                                                     shard_models per shard
+    hex/volume_points  (n_models, n_volume_nodes, 3) float32 mm: the hex model's own nodes (vertebral bodies,
+                                                     endplates, discs); same chunking
+    hex/surface_vertex (n_surface_nodes,)            int32: the tri vertex each remaining hex-model node is
+                                                     (posterior elements, sacrum, pelvis, femoral heads: S3 skins
+                                                     on the triangulated surface; the same for every model)
+    checksums/shard_NNNNN                            per-shard group whose attributes hold the sha256 of the
+                                                     shard's stored objects; written last, atomically: the
+                                                     completion mark
+
+The hex model's nodes (node k = node k+1 of "Mean_Model (Template).inp") are the volume nodes followed by
+those tri vertices (:func:`hex_model_points`)::
+
+    hex = np.concatenate([z["hex/volume_points"][i], z["tri/points"][i][z["hex/surface_vertex"][:]]])
+
+Storing the 52,772 surface nodes once instead of twice (format 3 kept them in ``hex/points`` too, as bitwise
+copies of the tri vertices) takes the default store from 5.32 to ~3.4 bytes per model node (docs/store.md).
 
 Model IDs are mixed-radix numbers of the SD-level indices, mode 1 most significant
 (``model_id = sum_i (w_i + 3) * 7^(5 - i)`` on the default 5 x {-3..3} grid); a shard is the contiguous
@@ -14,7 +28,7 @@ ID range ``[shard * shard_models, (shard + 1) * shard_models)``.
 
 Encoding (chosen by measurement, docs/store.md): every array uses only codecs of the Zarr v3 core
 specification, so any conforming reader (zarr-python, tensorstore, zarrs, zarr.js, Zarr.jl) decodes
-``z["hex/points"][i]`` to float32 millimetres.  Coordinates are rounded to multiples of 2^-10 mm (exact in
+``z["tri/points"][i]`` and ``z["hex/volume_points"][i]`` to float32 millimetres.  Coordinates are rounded to multiples of 2^-10 mm (exact in
 float32 for |x| < 16 m, so the stored value *is* the rounded one: error <= 2^-11 mm = 0.49 um), an inner
 chunk holds the ``chunk_models`` models along the last mode, and the ``transpose`` codec stores it
 coordinate-major with the model axis innermost (x of node 0 of the 7 models, x of node 1, ...), where
@@ -55,10 +69,13 @@ DEFAULT_SHARD_MODELS = 2401
 #: coordinates are stored as multiples of 2^-QUANTUM_EXP mm (2^-10 mm = 0.98 um; rounding error <= 0.49 um)
 QUANTUM_EXP = 10
 ENCODINGS = ("float32-q10", "float32")
-POINT_ARRAYS = ("tri/points", "hex/points")
-#: version 3: blosc clevel 2 on 224 KiB blocks (version 2: clevel 1 on 1 MiB blocks; version 1: numcodecs
-#: filters); a store of another version is refused, see _open_meta
-STORE_FORMAT = "spinecohort.cohort-store/3"
+#: the per-shard coordinate arrays
+POINT_ARRAYS = ("tri/points", "hex/volume_points")
+SURFACE_VERTEX = "hex/surface_vertex"
+#: version 4: the hex model's surface nodes are not stored again (hex/volume_points + hex/surface_vertex);
+#: version 3: hex/points held every hex-model node, blosc clevel 2 on 224 KiB blocks (version 2: clevel 1 on
+#: 1 MiB blocks; version 1: numcodecs filters); a store of another version is refused, see _open_meta
+STORE_FORMAT = "spinecohort.cohort-store/4"
 _FORMAT_PREFIX = "spinecohort.cohort-store/"
 #: blosc inside each inner chunk: bitshuffle, clevel 2 (blosc's zstd level 3) on blocks of 224 KiB = 8,192
 #: nodes x 7 models x 4 B (docs/store.md: -3.6 % of the bytes of clevel 1 on 1 MiB blocks at ~1.8x its encode
@@ -236,6 +253,22 @@ def default_chunk_models(shard_models: int, levels=DEFAULT_LEVELS) -> int:
 
 
 # ------------------------------------------------------------------------------------------- create
+def vertex_selector(surface_vertex: np.ndarray) -> slice | np.ndarray:
+    """``surface_vertex`` as a slice when it is a run of consecutive vertices (the template's: 28,322 ..
+    81,093), else as an int64 array: a slice copies memory blocks, a fancy index gathers value by value
+    (~5x slower on a 49-model batch)."""
+    sv = np.asarray(surface_vertex, dtype=np.int64)
+    if len(sv) and sv[-1] - sv[0] == len(sv) - 1 and np.all(np.diff(sv) == 1):
+        return slice(int(sv[0]), int(sv[-1]) + 1)
+    return sv
+
+
+def hex_model_points(volume_points: np.ndarray, tri_points: np.ndarray, surface_vertex: np.ndarray) -> np.ndarray:
+    """The hex model's nodes (..., n_volume + n_surface, 3) mm: its volume nodes (..., n_volume, 3), then
+    the tri vertices ``surface_vertex`` (n_surface,) of tri_points (..., n_tri, 3)."""
+    return np.concatenate([volume_points, tri_points[..., vertex_selector(surface_vertex), :]], axis=-2)
+
+
 def create_store(
     path: str | Path,
     n_tri_nodes: int,
@@ -249,9 +282,13 @@ def create_store(
     chunk_models: int | None = None,
     clevel: int = BLOSC_CLEVEL,
     overwrite: bool = False,
+    surface_vertex=None,
 ) -> zarr.Group:
-    """Create the empty cohort store (Zarr v3) with ``weights``, ``tri/points`` and ``hex/points``.
+    """Create the empty cohort store (Zarr v3) with ``weights``, ``tri/points``, ``hex/volume_points`` and
+    ``hex/surface_vertex``.
 
+    n_hex_nodes: nodes of the hex model; its last ``len(surface_vertex)`` nodes are the tri vertices
+    ``surface_vertex`` (the template's ``surface_vertex``; None: none are shared, every node is stored).
     attrs: extra JSON attributes (e.g. ``ssm_sha256``, ``template_sha256`` from :func:`file_sha256`).
     max_abs_mm: the largest |coordinate| the store accepts (mm).  chunk_models: models per inner chunk
     (default :func:`default_chunk_models`); it must divide shard_models (a Zarr shard is whole chunks).
@@ -260,6 +297,16 @@ def create_store(
     for name, n in (("n_tri_nodes", n_tri_nodes), ("n_hex_nodes", n_hex_nodes)):
         if int(n) < 1:
             raise ValueError(f"{name} must be >= 1, got {n}")
+    sv = np.zeros(0, np.int32) if surface_vertex is None else np.asarray(surface_vertex)
+    if sv.ndim != 1 or not np.issubdtype(sv.dtype, np.integer):
+        raise ValueError(f"surface_vertex must be a 1-D integer array of tri vertex ids, got {sv.dtype} {sv.shape}")
+    if len(sv) and (sv.min() < 0 or sv.max() >= int(n_tri_nodes)):
+        raise ValueError(
+            f"surface_vertex must index the {n_tri_nodes} tri vertices, got range [{sv.min()}, {sv.max()}]"
+        )
+    n_volume = int(n_hex_nodes) - len(sv)
+    if n_volume < 1:
+        raise ValueError(f"the hex model's {n_hex_nodes} nodes leave no volume node after {len(sv)} surface nodes")
     if encoding not in ENCODINGS:
         raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
     if not 0 < max_abs_mm < 2.0 ** (24 - QUANTUM_EXP):
@@ -287,6 +334,9 @@ def create_store(
             "shard_models": int(shard_models),
             "chunk_models": cm,
             "n_shards": int(n_sh),
+            "n_hex_nodes": int(n_hex_nodes),
+            "hex_model": "node k of the hex model (k+1 of the template deck): hex/volume_points[i][k] for k < "
+            "n_volume_nodes, else tri/points[i][hex/surface_vertex[k - n_volume_nodes]]",
             "encoding": encoding,
             "quantum_mm": 2.0**-QUANTUM_EXP if encoding == "float32-q10" else None,
             "max_abs_mm": float(max_abs_mm),
@@ -302,7 +352,7 @@ def create_store(
         fill_value=np.nan,
         dimension_names=("model", "mode"),
     )
-    for name, n in (("tri/points", n_tri_nodes), ("hex/points", n_hex_nodes)):
+    for name, n in (("tri/points", n_tri_nodes), ("hex/volume_points", n_volume)):
         a = root.create_array(
             name,
             shape=(total, int(n), 3),
@@ -315,6 +365,18 @@ def create_store(
             dimension_names=("model", "node", "xyz"),
         )
         a.attrs.update({"units": "mm"})
+    a = root.create_array(
+        SURFACE_VERTEX,
+        shape=(len(sv),),
+        chunks=(max(len(sv), 1),),
+        dtype="i4",
+        compressors=[ZstdCodec(level=3)],
+        fill_value=-1,
+        dimension_names=("surface_node",),
+    )
+    if len(sv):
+        a[:] = sv.astype(np.int32)
+    a.attrs.update({"about": "tri vertex of each hex-model node after the volume nodes (0-based)"})
     root.create_group(
         _CHECKSUM_DIR,
         attributes={"about": "one subgroup per finished shard; attributes hold sha256 and size of its stored objects"},
@@ -451,7 +513,7 @@ def _shard_objects(path: Path, shard: int) -> list[Path]:
     """Files holding shard ``shard``: the two point shards and the weights chunk (default key encoding)."""
     return [
         path / "tri/points/c" / str(shard) / "0" / "0",
-        path / "hex/points/c" / str(shard) / "0" / "0",
+        path / "hex/volume_points/c" / str(shard) / "0" / "0",
         path / "weights/c" / str(shard) / "0",
     ]
 
@@ -492,6 +554,24 @@ def _check_range(name: str, shard: int, lo: float, hi: float, finite: bool, max_
             f"{name} of shard {shard} exceeds the store's max_abs_mm={max_abs_mm} "
             f"(coordinates span [{lo:.1f}, {hi:.1f}] mm)"
         )
+
+
+def check_surface_nodes(tri: np.ndarray, hexp: np.ndarray, surface_vertex: np.ndarray, encoding: str, first_id: int):
+    """Raise ValueError unless the last ``len(surface_vertex)`` nodes of the hex models hexp (B, n_hex, 3) mm
+    round to the stored values of their tri vertices in tri (B, n_tri, 3) mm (the store keeps them once)."""
+    sv = np.asarray(surface_vertex)
+    n_vol = hexp.shape[1] - len(sv)
+    for k in range(len(hexp)):  # one model at a time: no shard-sized temporaries
+        diff = (quantize_mm(hexp[k, n_vol:], encoding) != quantize_mm(tri[k, vertex_selector(sv)], encoding)).any(
+            axis=1
+        )
+        if diff.any():
+            node = n_vol + int(np.flatnonzero(diff)[0])
+            raise ValueError(
+                f"{model_name(first_id + k)}: hex node {node} is not its tri vertex {int(sv[node - n_vol])} as "
+                f"stored ({int(diff.sum())} surface nodes differ); the store keeps each surface node once, in "
+                "tri/points (hex/surface_vertex)"
+            )
 
 
 class DirectWriter:
@@ -584,7 +664,10 @@ class ShardWriter:
     """Write shard ``shard`` of both point arrays batch by batch, then its weights and its sidecar.
 
     ``add(tri, hex)`` takes the next models of the shard in ID order (mm, any float dtype; batches a multiple
-    of ``chunk_models`` except the last), rounds them as stored, encodes each inner chunk (transpose, blosc)
+    of ``chunk_models`` except the last): tri (B, n_tri, 3) and hex either the volume nodes (B, n_volume, 3)
+    or the whole hex model (B, n_hex_nodes, 3), whose surface nodes must then round to the stored values of
+    their tri vertices (else ValueError: the store could not give them back).  It rounds them as stored,
+    encodes each inner chunk (transpose, blosc)
     and appends it to ``<object>.<pid>.partial``; ``close()`` appends the shard index (offset and nbytes per
     chunk, uint64 little-endian, then its crc32c), moves the objects into place (rename: atomic), writes the
     weights and last the checksum sidecar, the shard's completion mark.  A writer that is not closed
@@ -598,6 +681,8 @@ class ShardWriter:
         self.start, self.stop = shard_range(self.shard, meta["shard_models"], meta["n_models"])
         self.chunk = int(meta["chunk_models"])
         self.n_nodes = {name: root[name].shape[1] for name in POINT_ARRAYS}
+        self.surface_vertex = np.asarray(root[SURFACE_VERTEX][:], dtype=np.int64)
+        self.n_hex_nodes = int(meta["n_hex_nodes"])
         clevel = root["tri/points"].metadata.codecs[0].codecs[-1].clevel  # sharding -> inner chain -> blosc
         self._codec = _blosc_codecs(clevel)[1]
         self._clear()
@@ -631,11 +716,16 @@ class ShardWriter:
                     stale.unlink()
 
     def add(self, tri: np.ndarray, hexp: np.ndarray) -> None:
-        """Append the next models (B, n, 3) mm of both arrays."""
-        batch = {"tri/points": np.asarray(tri), "hex/points": np.asarray(hexp)}
-        b = len(batch["tri/points"])
-        if len(batch["hex/points"]) != b:
-            raise ValueError(f"tri and hex batches differ in models: {b} vs {len(batch['hex/points'])}")
+        """Append the next models: tri (B, n_tri, 3) mm, hex (B, n_volume, 3) or (B, n_hex_nodes, 3) mm."""
+        tri, hexp = np.asarray(tri), np.asarray(hexp)
+        n_vol = self.n_nodes["hex/volume_points"]
+        if hexp.ndim == 3 and hexp.shape[1] == self.n_hex_nodes and self.n_hex_nodes != n_vol:
+            self._check_surface(tri, hexp)
+            hexp = hexp[:, :n_vol]
+        batch = {"tri/points": tri, "hex/volume_points": hexp}
+        b = len(tri)
+        if len(hexp) != b:
+            raise ValueError(f"tri and hex batches differ in models: {b} vs {len(hexp)}")
         if self.start + self.n_written + b > self.stop:
             raise ValueError(f"shard {self.shard} holds {self.stop - self.start} models; got {self.n_written + b}")
         if self.n_written % self.chunk:
@@ -666,6 +756,13 @@ class ShardWriter:
                 self._sha[name].update(data)
                 self._offset[name] += len(data)
         self.n_written += b
+
+    def _check_surface(self, tri: np.ndarray, hexp: np.ndarray) -> None:
+        if tri.ndim != 3 or len(tri) != len(hexp) or tri.shape[1] != self.n_nodes["tri/points"]:
+            raise ValueError(
+                f"tri/points of shard {self.shard} must have shape (models, {self.n_nodes['tri/points']}, 3)"
+            )
+        check_surface_nodes(tri, hexp, self.surface_vertex, self.meta["encoding"], self.start + self.n_written)
 
     def close(self) -> dict:
         """Finish the shard (index, rename, weights, sidecar); returns the sidecar record."""
@@ -706,16 +803,25 @@ class ShardWriter:
 
 
 def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points: np.ndarray) -> dict:
-    """Write shard ``shard`` whole: tri_points (S, n_tri_nodes, 3), hex_points (S, n_hex_nodes, 3) in mm,
-    S = models in the shard.  Returns the sidecar record (see :class:`ShardWriter`)."""
+    """Write shard ``shard`` whole: tri_points (S, n_tri_nodes, 3), hex_points (S, n_hex_nodes, 3) (the whole
+    hex model) or (S, n_volume_nodes, 3) in mm, S = models in the shard.  Returns the sidecar record (see
+    :class:`ShardWriter`)."""
     tri, hexp = np.asarray(tri_points), np.asarray(hex_points)
     root, meta = _open_meta(path)
     start, stop = shard_range(int(shard), meta["shard_models"], meta["n_models"])
-    for name, x in (("tri/points", tri), ("hex/points", hexp)):
-        want = (stop - start, root[name].shape[1], 3)
-        if x.shape != want:
-            raise ValueError(f"{name} of shard {shard} must have shape {want}, got {x.shape}")
+    n_vol = root["hex/volume_points"].shape[1]
+    for name, x, n in (
+        ("tri/points", tri, (root["tri/points"].shape[1],)),
+        ("hex points", hexp, tuple(sorted({meta["n_hex_nodes"], n_vol}))),
+    ):
+        if x.ndim != 3 or len(x) != stop - start or x.shape[1] not in n or x.shape[2] != 3:
+            nodes = " or ".join(str(k) for k in n)
+            raise ValueError(f"{name} of shard {shard} must have shape ({stop - start}, {nodes}, 3), got {x.shape}")
         _check_coordinates(name, shard, x, meta["max_abs_mm"])  # before the writer clears the old shard
+    if hexp.shape[1] != n_vol:  # the whole hex model: its surface nodes must be the tri vertices
+        sv = root[SURFACE_VERTEX][:]
+        check_surface_nodes(tri, hexp, sv, meta["encoding"], start)
+        hexp = hexp[:, :n_vol]
     writer = ShardWriter(path, shard)
     try:
         writer.add(tri, hexp)
@@ -727,19 +833,30 @@ def write_shard(path: str | Path, shard: int, tri_points: np.ndarray, hex_points
 
 # --------------------------------------------------------------------------------------------- read
 def read_model(path: str | Path, i: int) -> tuple[np.ndarray, np.ndarray]:
-    """(tri (n_tri_nodes, 3), hex (n_hex_nodes, 3)) float32 node coordinates in mm of model ``i``."""
+    """(tri (n_tri_nodes, 3), hex (n_hex_nodes, 3): the whole hex model, :func:`hex_model_points`) float32
+    node coordinates in mm of model ``i``."""
     root, meta = _open_meta(path)
     if not 0 <= int(i) < meta["n_models"]:
         raise ValueError(f"model {i} out of range [0, {meta['n_models']})")
-    return root["tri/points"][int(i)], root["hex/points"][int(i)]
+    tri = root["tri/points"][int(i)]
+    return tri, hex_model_points(root["hex/volume_points"][int(i)], tri, root[SURFACE_VERTEX][:])
+
+
+#: what read_shard reads: a stored array, or "hex", the whole hex model assembled from both
+SHARD_ARRAYS = (*POINT_ARRAYS, "hex")
 
 
 def read_shard(path: str | Path, shard: int, array: str = "tri/points") -> np.ndarray:
-    """Node coordinates (S, n_nodes, 3) float32 mm of all models of ``shard`` from ``array``."""
-    if array not in POINT_ARRAYS:
-        raise ValueError(f"array must be one of {POINT_ARRAYS}, got {array!r}")
+    """Node coordinates (S, n_nodes, 3) float32 mm of all models of ``shard``: a stored point array, or
+    ``"hex"``, the whole hex model (:func:`hex_model_points`)."""
+    if array not in SHARD_ARRAYS:
+        raise ValueError(f"array must be one of {SHARD_ARRAYS}, got {array!r}")
     root, meta = _open_meta(path)
     start, stop = shard_range(int(shard), meta["shard_models"], meta["n_models"])
+    if array == "hex":
+        return hex_model_points(
+            root["hex/volume_points"][start:stop], root["tri/points"][start:stop], root[SURFACE_VERTEX][:]
+        )
     return root[array][start:stop]
 
 
