@@ -12,7 +12,7 @@ own process with Snakemake's one-thread environment, ``--jobs`` at a time (the `
 ``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
 * per job: wall, CPU (user + system, from ``wait4``), of it system, the write phase's system CPU, peak RSS,
-  bytes per node, encode CPU, CPU per phase; the sha256 of every shard object (compare runs and versions);
+  bytes per node, encode CPU, CPU per phase; the crc32c of every shard object (compare runs and versions);
 * bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
   chain (transpose + blosc) and nothing else, measured in this run; the store stage's CPU / floor and the
   write phase's CPU / floor;
@@ -602,7 +602,7 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
             f"{rec['stored_bytes'] / rec['stored_nodes']:7.3f} {rec['encode_cpu_s']:9.2f}  {cpu}"
         )
     for s, rec in zip(shards, records):  # to compare the stored bytes across runs and code versions
-        print(f"  shard {s} sha256: " + ", ".join(f"{k} {v['sha256']}" for k, v in rec["objects"].items()))
+        print(f"  shard {s} crc32c: " + ", ".join(f"{k} {v['crc32c']}" for k, v in rec["objects"].items()))
     chk = run([sys.executable, "-c", _CHECK, str(store)])
     stage_wall = time.perf_counter() - t_stage
     bad = int(chk["out"].strip())
@@ -626,7 +626,7 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
     )
     print(
         f"store-stage CPU (init + jobs + check): {stage_cpu:.1f} s -> CPU / floor = {stage_cpu / floor:.2f} "
-        f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, sha256, file writes): "
+        f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, crc32c, file writes): "
         f"{write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
     )
     print(

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import google_crc32c
 import numpy as np
 import pytest
 import zarr
@@ -490,3 +491,5 @@ def test_direct_writes_and_reads_hold_exactly_the_bytes_given(tmp_path, monkeypa
         assert w.direct == (not refuse) or (refuse == "write" and not sizes)  # no write: nothing refused
         # read back with O_DIRECT (a refused open falls back to buffered reads)
         assert S.object_sha256(f) == S.file_sha256(f) == hashlib.sha256(b"".join(data)).hexdigest()
+        # the shard records' checksum, the same way (google_crc32c of the whole file: the reference)
+        assert S.object_crc32c(f) == f"{google_crc32c.value(b''.join(data)):08x}"

@@ -196,7 +196,7 @@ def test_a_corrupted_shard_is_detected_and_only_it_is_rebuilt(run_copy):
     before = _store_files(store)
     obj = store / "hex" / "volume_points" / "c" / "1" / "0" / "0"
     data = bytearray(obj.read_bytes())
-    data[len(data) // 2] ^= 0x01  # one flipped bit, same size: only the sha256 can tell
+    data[len(data) // 2] ^= 0x01  # one flipped bit, same size: only the checksum (crc32c) can tell
     obj.write_bytes(bytes(data))
     # the rule fails naming the shard and what to do
     proc = run(run_copy, "--forcerun", "check_store", "results/store_check.csv")

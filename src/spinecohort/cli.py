@@ -163,7 +163,7 @@ def _check_store(args: argparse.Namespace) -> int:
 
     problems = shard_problems(args.store)
     if not problems:
-        print(f"{args.store}: every shard matches its recorded sha256")
+        print(f"{args.store}: every shard matches its recorded crc32c")
         return 0
     for shard, why in sorted(problems.items()):
         print(f"shard {shard:05d}: {why}")
@@ -382,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cs = sub.add_parser(
         "check-store",
-        help="check every shard of a cohort store against its recorded sha256; "
+        help="check every shard of a cohort store against its recorded size and crc32c; "
         "--rebuild invalidates bad shards so that snakemake rewrites them",
     )
     cs.add_argument("store", type=Path, help="the store (results/cohort.zarr)")

@@ -1,4 +1,4 @@
-# Adapter: every shard of the store against its recorded sha256; a table of the result, or a clear failure
+# Adapter: every shard of the store against its recorded size and crc32c; a table of the result, or a clear failure
 # naming the bad shards and how to rebuild them.
 from pathlib import Path
 
@@ -22,4 +22,4 @@ with to_file(snakemake.log[0]) as log:
             "those shards."
         )
     table.to_csv(snakemake.output[0], index=False)
-    log.info("%s: all %d shards match their recorded sha256", store, len(shards))
+    log.info("%s: all %d shards match their recorded crc32c", store, len(shards))
