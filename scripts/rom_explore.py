@@ -5,7 +5,8 @@ the way docs/rom.md's calibration sweeps were measured (the same `solve_model` a
         [--cases axial_left,axial_right] [--model model_08403] [--config config/config.yaml]
         [fe.annulus.fibres.angle_deg=43 fe.facets.clearance_mm=0.25 ...]
 
-Overrides are dotted config paths with YAML values; the deck is ``<results>/models/<model>.inp`` (make it
+Overrides are dotted config paths with YAML values (``+a.b.c=value`` adds an optional key the config lacks,
+e.g. ``+fe.annulus.fibres.k1_inner_mpa=1.17 +fe.annulus.fibres.k1_outer_mpa=1.8``); the deck is ``<results>/models/<model>.inp`` (make it
 with ``snakemake -j2 results/models/<model>.inp``).  Prints the validation rows of the solved extractions
 and the lumbar orderings; writes OUT/rom.csv (every ccx deck and log stays under OUT).  A unit case takes
 ~2-3 s on the default mean, a lumbar-model case 130-180 s.
@@ -23,8 +24,10 @@ import yaml
 
 
 def override(cfg: dict, item: str) -> None:
-    """Set ``a.b.c=value`` (value parsed as YAML) in the config dict; a clear error for an unknown key."""
-    path, _, value = item.partition("=")
+    """Set ``a.b.c=value`` (value parsed as YAML) in the config dict; a clear error for an unknown key
+    (``+a.b.c=value``: add the leaf c, which the config may lack, to the existing a.b)."""
+    add = item.startswith("+")
+    path, _, value = item.removeprefix("+").partition("=")
     if not value:
         raise SystemExit(f"override {item!r}: expected path=value")
     node, keys = cfg, path.split(".")
@@ -32,7 +35,7 @@ def override(cfg: dict, item: str) -> None:
         if not isinstance(node, dict) or k not in node:
             raise SystemExit(f"override {item!r}: config has no {path!r}")
         node = node[k]
-    if keys[-1] not in node:
+    if not isinstance(node, dict) or (keys[-1] not in node and not add):
         raise SystemExit(f"override {item!r}: config has no {path!r}")
     node[keys[-1]] = yaml.safe_load(value)
 

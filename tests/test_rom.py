@@ -897,3 +897,76 @@ def test_sensitivity_and_mode_figures_are_written(tmp_path):
         }
     )
     assert rom_modes_figure(modes, tmp_path / "m.png").stat().st_size > 5_000
+
+
+def test_k1_gradient_gives_each_annulus_ring_its_set_and_material(tmp_path, template):
+    # A radial fibre-stiffness gradient (fibre content grows inner -> outer, Schmidt et al. 2006): each annulus
+    # ring of the O-grid gets its own element set and ELASTIC_FIBER material whose k1 is the configured linear
+    # interpolation (inner ring k1_inner_mpa, outer ring k1_outer_mpa), in the disc's own fibre orientation; the
+    # ring sets partition the disc's annulus; export and ROM decks carry the same cards; off, one D_<disc>_AF.
+    import copy
+    import re
+
+    import yaml
+
+    from spinecohort.fe.export import annulus_ring_k1, annulus_rings, disc_hexes, fe_model
+
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    fe = copy.deepcopy(cfg["fe"])
+    fe["annulus"]["fibres"].update(k1_inner_mpa=1.17, k1_outer_mpa=1.8)
+    mats = materials_from_config(fe)
+    rings = annulus_rings(template)
+    assert len(rings) >= 2 and rings[0] == template.grid.np_ring + 1 and rings[-1] == template.grid.shell_ring
+    k1 = annulus_ring_k1(template, mats)
+    assert list(k1) == list(rings) and k1[rings[0]] == 1.17 and k1[rings[-1]] == 1.8
+    assert np.all(np.diff(list(k1.values())) > 0)
+    nq = len(template.grid.quads)
+    for model in (
+        fe_model(template, materials=mats),
+        extract_rom_model(template, template.nodes, "L3", "L4", materials=mats).fe,
+    ):
+        text = write_inp(model, tmp_path / "g.inp").read_text()
+        for r, k in k1.items():
+            consts = re.search(rf"\*MATERIAL, NAME=ELASTIC_FIBER_AF_R{r}\n\*USER MATERIAL, CONSTANTS=10\n([^*]*)", text)
+            values = [float(v) for v in re.split(r"[,\s]+", consts[1].strip())]
+            assert values[4] == values[8] == pytest.approx(k)  # k1 of both fibre families
+            assert values[:2] == [mats.annulus_c10_mpa, mats.annulus_d1_per_mpa]
+            line = f"*SOLID SECTION, ELSET=D_L3L4_AF_R{r}, MATERIAL=ELASTIC_FIBER_AF_R{r}, ORIENTATION=OR_D_L3L4"
+            assert line in text
+        assert "ELSET=D_L3L4_AF," not in text and "NAME=ELASTIC_FIBER_AF\n" not in text
+    export = fe_model(template, materials=mats)
+    uniform = fe_model(template)
+    ring_ids = [export.element_sets[f"D_L3L4_AF_R{r}"] for r in rings]
+    assert np.array_equal(np.sort(np.concatenate(ring_ids)), uniform.element_sets["D_L3L4_AF"])
+    disc_first = len(export.element_blocks["HEXES"][1])  # the disc hexes follow the bone hexes, template order
+    disc_tpl = np.flatnonzero(disc_hexes(template))
+    for r, ids in zip(rings, ring_ids):
+        assert np.all(template.grid.quad_ring[disc_tpl[ids - disc_first] % nq] == r)
+    fe["annulus"]["fibres"]["k1_outer_mpa"] = None
+    with pytest.raises(ValueError, match="inner and its outer"):
+        materials_from_config(fe)
+
+
+@needs_ccx
+def test_a_stiffer_outer_annulus_ring_lowers_axial_rotation(template, tmp_path):
+    # Physics of the gradient: the fibres resist axial rotation by circumferential-axial stretch, largest at the
+    # disc's rim, so stiffening the outer ring's fibres (inner ring unchanged) must lower the unit's axial
+    # rotation; a "gradient" with equal inner and outer k1 is the uniform annulus (same ROM).  Test-config mean,
+    # L3-L4 unit, 7.5 N.m, the calibrated materials otherwise.
+    from dataclasses import replace
+
+    kw = Settings().deck_kw()
+    k1 = DEFAULT_MATERIALS.fibre_k1_mpa
+    variants = {
+        "uniform": DEFAULT_MATERIALS,
+        "flat": replace(DEFAULT_MATERIALS, fibre_k1_inner_mpa=k1, fibre_k1_outer_mpa=k1),
+        "stiff_outer": replace(DEFAULT_MATERIALS, fibre_k1_inner_mpa=k1, fibre_k1_outer_mpa=4 * k1),
+    }
+    rom = {}
+    for name, mats in variants.items():
+        m = extract_rom_model(template, template.nodes, "L3", "L4", materials=mats)
+        r = run_case(m, "axial_left", tmp_path / name, **kw)
+        assert r.load_fraction == 1.0
+        rom[name] = r.curve[-1, 1]
+    assert rom["flat"] == pytest.approx(rom["uniform"], abs=1e-3)
+    assert rom["stiff_outer"] < rom["uniform"] - 0.1  # 5.91 -> 5.59 deg when written

@@ -11,7 +11,10 @@ below equal config/config.yaml, each with its literature source:
 * annulus: Neo-Hooke ground substance with two collagen fibre families at +-30 deg to the transverse plane,
   CalculiX's built-in Holzapfel-type ``ELASTIC_FIBER`` user material (constants C10, D1, then ax, ay, k1,
   k2 per family, in a cylindrical *ORIENTATION per disc: 1 radial, 2 circumferential, 3 axial).  Fibres
-  carry load only when stretched (ccx skips a family whose isochoric I4 < 1);
+  carry load only when stretched (ccx skips a family whose isochoric I4 < 1).  Optionally a radial gradient
+  of the fibre stiffness k1 (fibre content grows inner -> outer, Schmidt et al. 2006): k1 linear over the
+  template's annulus rings (`annulus_ring_k1`), each ring its own element set ``D_<disc>_AF_R<k>`` and material
+  ``ELASTIC_FIBER_AF_R<k>`` in the disc's orientation; off (the default), one uniform k1 and ``D_<disc>_AF``;
 * ligaments tension-only bilinear springs (SPRINGA, *SPRING NONLINEAR): Young's moduli below/above a
   transition strain and cross-section areas of Goel et al. 1995 (as tabulated in Kim et al. 2013, BMC
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
@@ -63,26 +66,41 @@ class FEMaterials:
     annulus_c10_mpa: float = 0.225
     annulus_d1_per_mpa: float = 0.688  # calibrated (config/config.yaml)
     fibre_k1_mpa: float = 1.51
+    # radial k1 gradient (`annulus_ring_k1`): k1 of the innermost / outermost annulus ring (MPa), linear in
+    # between; None (both): the uniform fibre_k1_mpa
+    fibre_k1_inner_mpa: float | None = None
+    fibre_k1_outer_mpa: float | None = None
     fibre_k2: float = 11.0
     fibre_angle_deg: float = 40.0  # to the transverse plane, +- (two families)
     ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
     include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
     facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
 
-    def annulus_constants(self) -> tuple[float, ...]:
+    def __post_init__(self):
+        if (self.fibre_k1_inner_mpa is None) != (self.fibre_k1_outer_mpa is None):
+            raise ValueError("the fibre k1 gradient needs both its inner and its outer k1 (or neither)")
+
+    @property
+    def k1_graded(self) -> bool:
+        """Whether the annulus has a radial k1 gradient (per-ring sets and materials)."""
+        return self.fibre_k1_inner_mpa is not None
+
+    def annulus_constants(self, k1_mpa: float | None = None) -> tuple[float, ...]:
         """ELASTIC_FIBER constants: C10, D1, then (ax, ay, k1, k2) per family in the cylindrical system
-        (a = fibre direction; ccx sets az = +sqrt(1 - ax^2 - ay^2), the axial component)."""
+        (a = fibre direction; ccx sets az = +sqrt(1 - ax^2 - ay^2), the axial component).  k1_mpa: a ring's
+        k1 (default the uniform fibre_k1_mpa)."""
         c = float(np.cos(np.radians(self.fibre_angle_deg)))  # circumferential component; az = sin
+        k1 = self.fibre_k1_mpa if k1_mpa is None else float(k1_mpa)
         return (
             self.annulus_c10_mpa,
             self.annulus_d1_per_mpa,
             0.0,
             float(c),
-            self.fibre_k1_mpa,
+            k1,
             self.fibre_k2,
             0.0,
             float(-c),
-            self.fibre_k1_mpa,
+            k1,
             self.fibre_k2,
         )
 
@@ -122,6 +140,45 @@ def disc_hexes(template: HexTemplate) -> np.ndarray:
 FIXED_SETS = ("PELVIS", "EP_SUP_S1")
 
 
+def _optional_float(value) -> float | None:
+    return None if value is None else float(value)
+
+
+def annulus_rings(template: HexTemplate) -> np.ndarray:
+    """The O-grid rings of the annulus, inner -> outer (coarse template: 2, 3; ring 3 the thin outer lamella)."""
+    return np.arange(template.grid.np_ring + 1, template.grid.shell_ring + 1)
+
+
+def annulus_ring_k1(template: HexTemplate, mats: FEMaterials) -> dict[int, float]:
+    """{ring: k1 MPa} of the radial fibre-stiffness gradient: fibre_k1_inner_mpa on the innermost annulus ring,
+    fibre_k1_outer_mpa on the outermost, linear in the ring index in between; {} when k1 is uniform."""
+    if not mats.k1_graded:
+        return {}
+    rings = annulus_rings(template)
+    t = (rings - rings[0]) / max(len(rings) - 1, 1)
+    k1 = mats.fibre_k1_inner_mpa + t * (mats.fibre_k1_outer_mpa - mats.fibre_k1_inner_mpa)
+    return {int(r): float(k) for r, k in zip(rings, k1)}
+
+
+def annulus_material(ring: int | None = None) -> str:
+    """Material name of the annulus (ring None) or of one annulus ring of a k1 gradient."""
+    return ANNULUS_MATERIAL if ring is None else f"{ANNULUS_MATERIAL}_R{ring}"
+
+
+def annulus_ring_sets(template: HexTemplate, mats: FEMaterials) -> dict[str, dict[str, np.ndarray]]:
+    """With a k1 gradient: each disc's annulus set -> its per-ring sets, ``D_<disc>_AF`` -> {``D_<disc>_AF_R<k>``:
+    template hex ids}, rings inner -> outer; {} when k1 is uniform (the decks keep ``D_<disc>_AF``)."""
+    rings = annulus_ring_k1(template, mats)
+    if not rings:
+        return {}
+    ring_of_hex = template.grid.quad_ring[np.arange(len(template.hexes)) % len(template.grid.quads)]
+    out = {}
+    for name, idx in template.elsets.items():
+        if template.elset_kind[name] == "hex" and name.endswith("_AF"):
+            out[name] = {f"{name}_R{r}": idx[ring_of_hex[idx] == r] for r in rings}
+    return out
+
+
 def materials_from_config(fe: dict | None) -> FEMaterials:
     """FEMaterials from the config's ``fe:`` block (None -> the defaults, equal to config/config.yaml)."""
     if fe is None:
@@ -143,6 +200,8 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         annulus_c10_mpa=float(af["c10_mpa"]),
         annulus_d1_per_mpa=float(af["d1_per_mpa"]),
         fibre_k1_mpa=float(fib["k1_mpa"]),
+        fibre_k1_inner_mpa=_optional_float(fib.get("k1_inner_mpa")),
+        fibre_k1_outer_mpa=_optional_float(fib.get("k1_outer_mpa")),
         fibre_k2=float(fib["k2"]),
         fibre_angle_deg=float(fib["angle_deg"]),
         ligaments=ligs,
@@ -189,15 +248,21 @@ def ligament_table(
     return tuple(rows)
 
 
-def material_cards(mats: FEMaterials) -> list:
-    """The named materials every deck carries: CORTICAL, CANCELLOUS, CEP, NP, ELASTIC_FIBER_AF."""
-    return [
+def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> list:
+    """The named materials every deck carries: CORTICAL, CANCELLOUS, CEP, NP, ELASTIC_FIBER_AF (with a k1
+    gradient instead one ELASTIC_FIBER_AF_R<k> per annulus ring of `template`, `annulus_ring_k1`)."""
+    cards = [
         LinearElastic("CORTICAL", *mats.cortical),
         LinearElastic("CANCELLOUS", *mats.cancellous),
         LinearElastic("CEP", *mats.cep),
         MooneyRivlin("NP", *mats.nucleus),
-        UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants()),
     ]
+    if not mats.k1_graded:
+        return cards + [UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
+    if template is None:
+        raise ValueError("a k1 gradient's materials need the template (its annulus rings)")
+    rings = annulus_ring_k1(template, mats)
+    return cards + [UserMaterial(annulus_material(r), mats.annulus_constants(k)) for r, k in rings.items()]
 
 
 def disc_orientations(template: HexTemplate, points: np.ndarray) -> dict[str, Orientation]:
@@ -216,8 +281,13 @@ def disc_orientations(template: HexTemplate, points: np.ndarray) -> dict[str, Or
 
 
 def hex_section(name: str, orientations: dict[str, Orientation]) -> Section:
-    """Section of a template hex set (V_<lvl>_CORE/SHELL, D_<disc>_NP/AF/CEP)."""
-    tissue = name.rsplit("_", 1)[1]
+    """Section of a template hex set (V_<lvl>_CORE/SHELL, D_<disc>_NP/AF/CEP) or of an annulus ring's set
+    (D_<disc>_AF_R<k>, `annulus_ring_sets`: material ELASTIC_FIBER_AF_R<k>, the disc's orientation)."""
+    parts = name.split("_")
+    if parts[0] == "D" and len(parts) == 4 and parts[2] == "AF" and parts[3].startswith("R"):
+        ring = int(parts[3][1:])
+        return Section(elset=name, material=annulus_material(ring), orientation=orientations["_".join(parts[:2])].name)
+    tissue = parts[-1]
     if tissue == "AF":
         return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
     return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue))
@@ -274,6 +344,7 @@ def fe_model(
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}
     lig_new = np.cumsum(lig_keep) - 1
     elsets = {}
+    ring_sets = annulus_ring_sets(template, mats)  # {} unless k1 is graded
     for name, idx in template.elsets.items():
         kind = template.elset_kind[name]
         if kind == "lig":
@@ -281,6 +352,10 @@ def fe_model(
             if len(idx) == 0:
                 continue
         elif kind == "hex":
+            if name in ring_sets:
+                for ring_name, ring_idx in ring_sets[name].items():
+                    elsets[ring_name] = offset["hex"] + np.sort(pos_of_hex[ring_idx])
+                continue
             idx = np.sort(pos_of_hex[idx])
         elsets[name] = offset[kind] + np.asarray(idx)
     conn_sets = model_connectors(template, template.nodes) if connectors else {}
@@ -306,6 +381,9 @@ def fe_model(
     orientations = disc_orientations(template, pts)
     sections = []
     for name, kind in template.elset_kind.items():
+        if name in ring_sets:
+            sections += [hex_section(ring_name, orientations) for ring_name in ring_sets[name]]
+            continue
         if name not in elsets:
             continue
         if kind == "hex":
@@ -329,7 +407,7 @@ def fe_model(
         element_blocks=blocks,
         node_sets=node_sets,
         element_sets=elsets,
-        materials=material_cards(mats),
+        materials=material_cards(mats, template),
         sections=sections,
         heading=heading,
         orientations=list(orientations.values()),
@@ -397,6 +475,7 @@ __all__ = [
     "write_model_files",
     "ligament_table",
     "materials_from_config",
+    "annulus_ring_k1",
     "FEMaterials",
     "LigamentLaw",
     "DEFAULT_MATERIALS",

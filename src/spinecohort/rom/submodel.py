@@ -47,6 +47,7 @@ from spinecohort.fe.connections import (
 from spinecohort.fe.export import (
     DEFAULT_MATERIALS,
     FEMaterials,
+    annulus_ring_sets,
     disc_hexes,
     disc_orientations,
     hex_section,
@@ -203,18 +204,20 @@ def extract_rom_model(
     pos_of_hex[hex_ids] = np.arange(len(hex_ids))
     orientations = disc_orientations(template, points)
     sections, used_orient = [], set()
+    ring_sets = annulus_ring_sets(template, mats)  # the annulus per ring when k1 is graded, as in the export
     for name, idx in template.elsets.items():
         if template.elset_kind[name] != "hex":
             continue
-        sub = pos_of_hex[idx]
-        sub = sub[sub >= 0]
-        if len(sub) == 0:
-            continue
-        elsets[name] = np.sort(sub)
-        sec = hex_section(name, orientations)
-        sections.append(sec)
-        if sec.orientation:
-            used_orient.add(sec.orientation)
+        for set_name, set_idx in ring_sets.get(name, {name: idx}).items():
+            sub = pos_of_hex[set_idx]
+            sub = sub[sub >= 0]
+            if len(sub) == 0:
+                continue
+            elsets[set_name] = np.sort(sub)
+            sec = hex_section(set_name, orientations)
+            sections.append(sec)
+            if sec.orientation:
+                used_orient.add(sec.orientation)
     lig_counts: dict[str, int] = {}
     if len(lig_conn):
         blocks["LIGAMENTS"] = ("SPRINGA", lig_conn)
@@ -286,7 +289,7 @@ def extract_rom_model(
         element_blocks=blocks,
         node_sets={},
         element_sets=elsets,
-        materials=material_cards(mats),
+        materials=material_cards(mats, template),
         sections=sections,
         heading=heading or f"spinecohort ROM model {top}-{bottom}",
         orientations=[o for o in orientations.values() if o.name in used_orient],
