@@ -70,9 +70,12 @@ def rom_deck_text(
     provenance: str = "",
     average_force_n: float | None = None,
     correction_tolerance: float = 0.01,
+    load_nmm: np.ndarray | None = None,
 ) -> str:
     """The complete ccx deck of one load case: model data, rigid bodies, fixation, one static step with
-    the pure moment on the top's ROT NODE, node prints of every endplate node and the ROT NODE."""
+    the pure moment on the top's ROT NODE, node prints of every endplate node, the ROT NODE and the fixed
+    nodes' reaction forces.  load_nmm: the ROT NODE's *CLOAD (3,) N.mm instead of the load case's moment
+    vector (`spinecohort.rom.reaction.generalised_load`: the load that exerts that moment at a rotation)."""
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
     if model.top not in model.rigid_nodes:
@@ -83,7 +86,7 @@ def rom_deck_text(
         model.top,
         model.fixed_nodes,
         {"EPNODES": np.unique(np.concatenate(list(model.endplate_nodes.values())))},
-        load_vector_nmm(model, case, moment_nmm),
+        load_vector_nmm(model, case, moment_nmm) if load_nmm is None else np.asarray(load_nmm, dtype=np.float64),
         nlgeom=nlgeom,
         initial_increment=initial_increment,
         min_increment=min_increment,
@@ -113,7 +116,7 @@ def pure_moment_text(
     (numbered right after the mesh), the *RIGID BODY of each (0-based node indices), the fixed nodes
     (U1-U3 = 0), one static step with the moment vector `moment_nmm` (3,) N.mm on the ROT NODE of `top`,
     and node prints (U) of that ROT NODE (set ROTTOP: its U1-U3 are the rotations in rad) and of each
-    print set.  The step controls are the ones the ROM analyses converge with (docs/rom.md)."""
+    print set, and the reaction forces (RF) of the fixed nodes (`spinecohort.rom.reaction`).  The step controls are the ones the ROM analyses converge with (docs/rom.md)."""
     n = len(nodes_mm)
     parts = []
     extra, rb, next_id = [], [], n + 1
@@ -161,6 +164,8 @@ def pure_moment_text(
             )
     parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in range(3)))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n" + "".join(f"*NODE PRINT, NSET={name}\nU\n" for name in print_sets))
+    # the reaction forces of the fixed nodes: the moment the fixation carries (`spinecohort.rom.reaction`)
+    parts.append("*NODE PRINT, NSET=FIXED\nRF\n")
     parts.append("*END STEP\n")
     return "".join(parts)
 

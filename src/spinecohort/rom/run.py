@@ -17,8 +17,9 @@ import pandas as pd
 
 from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.deck import LOAD_CASES, rom_deck_text
+from spinecohort.rom.deck import LOAD_CASES, load_vector_nmm, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
+from spinecohort.rom.reaction import generalised_load, reactions
 from spinecohort.rom.ribs import RIB_SEGMENTS, RibHeads
 from spinecohort.rom.submodel import (
     RomError,
@@ -54,6 +55,13 @@ class CaseResult:
     peak_rss_mb: float
     load_fraction: float = 1.0  # of the moment reached (< 1: ccx did not converge; ROM at that load)
     attempts: int = 1
+    #: the moment (N.mm, global) the fixation carries at the last printed load: minus the fixed nodes' reaction
+    #: moment (`spinecohort.rom.reaction`); the physical moment on the top for a load without net force
+    carried_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    reaction_force_n: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))  # net, ~0
+    cload_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))  # on the ROT NODE
+    target_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))  # the load case's
+    moment_iterations: int = 0  # solves after the first with the *CLOAD corrected (`run_case`)
 
 
 def run_case(
@@ -64,9 +72,15 @@ def run_case(
     threads: int = 1,
     timeout_s: float = 3600.0,
     job: str | None = None,
+    moment_iterations: int = 0,
     **deck_kw,
 ) -> CaseResult:
-    """Write the deck of one load case into workdir, run ccx on it (strict log check), read the ROM."""
+    """Write the deck of one load case into workdir, run ccx on it (strict log check), read the ROM.
+
+    moment_iterations: 0 = the load case's moment vector on the ROT NODE (ccx's generalised force: the
+    physical moment differs from it once the top has turned about an axis other than the moment's,
+    `spinecohort.rom.reaction.physical_moment`); n > 0 = n more solves, each with the *CLOAD that exerts the
+    load case's moment at the previous solve's rotation (decks ``<job>_m<i>.inp``; the ROM is the last's)."""
     from spinecohort.fe.calculix import CalculixError, CcxResult, parse_dat, run_ccx
 
     check_elements(model)  # an inverted hex never reaches the solver
@@ -91,33 +105,47 @@ def run_case(
         "max_increments": max(400, deck_kw.get("max_increments", 100)),
     }
     seconds = peak = 0.0
-    for attempt, kw in enumerate((deck_kw, relaxed_kw, retry_kw), start=1):
-        deck.write_text(rom_deck_text(model, case, moment_nmm, **kw))
-        t0 = time.perf_counter()
-        try:
-            res = run_ccx(deck, workdir, threads=threads, timeout_s=timeout_s, allowed_warnings=ALLOWED_WARNINGS)
-        except CalculixError as exc:
-            if not NONCONVERGENCE.search(str(exc)):
-                raise
-            log.warning("%s: ccx did not converge (attempt %d): %s", deck, attempt, str(exc).splitlines()[-1])
-            dat = workdir / f"{job}.dat"
-            res = CcxResult(
-                1,
-                "",
-                parse_dat(dat.read_text()) if dat.exists() else [],
-                workdir,
-                job,
-                time.perf_counter() - t0,
-                float("nan"),
-            )
-            converged = False
-        else:
-            converged = True
-        seconds += res.seconds
-        peak = np.nanmax([peak, res.peak_rss_mb])
-        if converged:
+    target = load_vector_nmm(model, case, moment_nmm)
+    load = None  # the first solve: the load case's moment vector as the ROT NODE's *CLOAD
+    for iteration in range(int(moment_iterations) + 1):
+        name = job if iteration == 0 else f"{job}_m{iteration}"
+        deck = workdir / f"{name}.inp"
+        for attempt, kw in enumerate((deck_kw, relaxed_kw, retry_kw), start=1):
+            deck.write_text(rom_deck_text(model, case, moment_nmm, load_nmm=load, **kw))
+            t0 = time.perf_counter()
+            try:
+                res = run_ccx(deck, workdir, threads=threads, timeout_s=timeout_s, allowed_warnings=ALLOWED_WARNINGS)
+            except CalculixError as exc:
+                if not NONCONVERGENCE.search(str(exc)):
+                    raise
+                log.warning("%s: ccx did not converge (attempt %d): %s", deck, attempt, str(exc).splitlines()[-1])
+                dat = workdir / f"{name}.dat"
+                res = CcxResult(
+                    1,
+                    "",
+                    parse_dat(dat.read_text()) if dat.exists() else [],
+                    workdir,
+                    name,
+                    time.perf_counter() - t0,
+                    float("nan"),
+                )
+                converged = False
+            else:
+                converged = True
+            seconds += res.seconds
+            peak = np.nanmax([peak, res.peak_rss_mb])
+            if converged:
+                break
+        rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP"]
+        if moment_iterations:
+            _log_iteration(model, case, deck, res.node_prints, iteration, load, target)
+        if not converged or not rot_prints or iteration == moment_iterations:
             break
-    rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP"]
+        # the *CLOAD is the generalised force conjugate to the ROT NODE's rotation vector: the load that
+        # exerts the moment `target` at the rotation reached (a fixed point: the next solve turns a little
+        # differently; `moment_iterations` solves refine it)
+        load = generalised_load(target, rot_prints[-1].values[0])
+        log.info("%s: moment iteration %d, *CLOAD %s N.mm", deck, iteration + 1, np.round(load, 1))
     ep_prints = [b for b in res.node_prints if b.node_set.upper() == "EPNODES"]
     if not rot_prints or not ep_prints:
         raise RomError(f"ccx run {deck} printed no displacements (log {workdir / (job + '.log')})")
@@ -128,6 +156,8 @@ def run_case(
     axis, sign = LOAD_CASES[case]
     load_axis = model.frames[model.top][:, axis]
     curve = np.array([[b.time, sign * np.degrees(b.values[0] @ load_axis)] for b in rot_prints])
+    coords = {i + 1: x for i, x in enumerate(model.fe.nodes)}
+    rf = [r for r in reactions(coords, res.node_prints) if abs(r.time - last.time) < 1e-9]
     return CaseResult(
         case,
         segment_rotations_deg(model, disp),
@@ -137,6 +167,34 @@ def run_case(
         peak,
         float(last.time),
         attempt,
+        rf[-1].carried_nmm() if rf else np.full(3, np.nan),
+        rf[-1].force_n if rf else np.full(3, np.nan),
+        np.asarray(load if load is not None else target, dtype=np.float64),
+        np.asarray(target, dtype=np.float64),
+        iteration,
+    )
+
+
+def _log_iteration(model: RomModel, case: str, deck: Path, prints, iteration: int, load, target) -> None:
+    """One moment iteration's *CLOAD, carried moment, top rotation and segment ROMs (the log)."""
+    ep = [b for b in prints if b.node_set.upper() == "EPNODES"]
+    rot = [b for b in prints if b.node_set.upper() == "ROTTOP"]
+    if not ep or not rot:
+        return
+    coords = {i + 1: x for i, x in enumerate(model.fe.nodes)}
+    rf = [r for r in reactions(coords, prints) if abs(r.time - ep[-1].time) < 1e-9]
+    axis, sign = LOAD_CASES[case]
+    rows = segment_rotations_deg(model, {int(i) - 1: v for i, v in zip(ep[-1].node_ids, ep[-1].values)})
+    log.info(
+        "%s: moment iteration %d at load %.4f: *CLOAD %s, carried %s (target %s) N.mm, top rotation %s deg, ROM %s deg",
+        deck,
+        iteration,
+        ep[-1].time,
+        np.round(target if load is None else load, 1),
+        np.round(rf[-1].carried_nmm(), 1) if rf else "?",
+        np.round(target, 1),
+        np.round(np.degrees(rot[-1].values[0]), 3),
+        {f"{u}-{lo}": round(float(sign * c[axis]), 3) for (u, lo), c in rows.items()},
     )
 
 
@@ -191,6 +249,8 @@ class Settings:
     all_effect: bool = True
     threads: int = 2
     timeout_s: float = 7200.0
+    #: solves after the first with the ROT NODE's *CLOAD corrected to exert the physical moment (`run_case`)
+    moment_iterations: int = 0
     #: the specimens' rib heads (`spinecohort.rom.ribs`): units they bridge are also solved with them
     rib_heads: RibHeads | None = None
 
@@ -321,7 +381,20 @@ def solve_model(
             threads=1,
             timeout_s=cfg.timeout_s,
             job=name,
+            moment_iterations=cfg.moment_iterations,
             **deck_kw,
+        )
+        log.info(
+            "%s %s %s-%s %s (%s): moment carried %s N.mm (load case %s), net reaction force %s N",
+            model_id,
+            mode,
+            model.top,
+            model.vertebrae[-1],
+            case,
+            variant,
+            np.round(r.carried_nmm, 1),
+            np.round(r.target_nmm, 1),
+            np.round(r.reaction_force_n, 4),
         )
         log.info(
             "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments",
