@@ -198,13 +198,23 @@ def _log_iteration(model: RomModel, case: str, deck: Path, prints, iteration: in
     )
 
 
+def carried_fraction(r: CaseResult) -> float:
+    """Share of the load case's moment that the fixation carries at the last printed load, along the load's
+    direction: carried . target / (load_fraction |target|^2).  1 for a model in equilibrium; C3D8R discs
+    leak some (docs/moment_check.md).  NaN without reaction prints."""
+    t = np.asarray(r.target_nmm, dtype=np.float64)
+    den = float(r.load_fraction) * float(t @ t)
+    return float(np.asarray(r.carried_nmm) @ t / den) if den > 0 and np.all(np.isfinite(r.carried_nmm)) else np.nan
+
+
 def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: str) -> pd.DataFrame:
-    """One row per segment and load case: primary ROM (deg, positive in the load direction) and the
-    coupled rotations about the other two axes."""
+    """One row per segment and load case: primary ROM (deg, positive in the load direction), the
+    coupled rotations about the other two axes, and the share of the moment the fixation carries."""
 
     rows = []
     for r in results:
         axis, sign = LOAD_CASES[r.case]
+        carried = carried_fraction(r)
         for (up, lo), comp in r.rotations_deg.items():
             rows.append(
                 {
@@ -217,6 +227,7 @@ def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: s
                     "anterior_deg": comp[1],
                     "cranial_deg": comp[2],
                     "load_fraction": r.load_fraction,
+                    "moment_carried_fraction": round(carried, 4),
                     "attempts": r.attempts,
                     "solve_s": round(r.seconds, 2),
                     "peak_rss_mb": round(r.peak_rss_mb, 1),
