@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
             dat = inp.with_suffix(".dat")
             if not dat.exists():
                 continue
-            nodes, _, cloads = deck_nodes_and_loads(inp.read_text())
+            nodes, cloads = deck_nodes_and_loads(inp.read_text())
             q = np.zeros(3)
             for _, dof, value in cloads:
                 q[dof - 1] += value

@@ -10,7 +10,6 @@ Units: mm, N, N.mm.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,52 +50,25 @@ def reactions(coords_mm: dict[int, np.ndarray], prints: list[NodePrint], node_se
     return [reaction_resultant(coords_mm, b, point_mm) for b in blocks]
 
 
-_KEYWORD = re.compile(r"^\*(?P<kw>[A-Z ]+)(?P<rest>.*)$", re.IGNORECASE)
-
-
-def deck_nodes_and_loads(
-    text: str,
-) -> tuple[dict[int, np.ndarray], dict[str, np.ndarray], list[tuple[int, int, float]]]:
-    """Node coordinates (id -> (3,)), node sets (name -> ids; plain id lists only) and the ``*CLOAD`` lines
-    (node, dof, value) of a ccx deck as `spinecohort.rom.deck` writes it."""
+def deck_nodes_and_loads(text: str) -> tuple[dict[int, np.ndarray], list[tuple[int, int, float]]]:
+    """Node coordinates (id -> (3,) mm, every *NODE block: the mesh and the rigid bodies' nodes) and the
+    ``*CLOAD`` lines (node, dof, value) of a ccx deck as `spinecohort.rom.deck` writes it."""
     nodes: dict[int, np.ndarray] = {}
-    sets: dict[str, list[int]] = {}
     cloads: list[tuple[int, int, float]] = []
-    mode, name = None, None
+    mode = None
     for line in text.splitlines():
         s = line.strip()
         if not s or s.startswith("**"):
             continue
         if s.startswith("*"):
-            m = _KEYWORD.match(s)
-            kw = m["kw"].strip().upper() if m else ""
-            opts = {
-                k.strip().upper(): v.strip()
-                for k, _, v in (o.partition("=") for o in (m["rest"] if m else "").split(",")[1:])
-            }
-            mode, name = None, None
-            if kw == "NODE" and "PRINT" not in kw:
-                mode = "node"
-                name = opts.get("NSET")
-                if name:
-                    sets.setdefault(name.upper(), [])
-            elif kw == "NSET":
-                mode, name = "nset", opts["NSET"].upper()
-                sets.setdefault(name, [])
-            elif kw == "CLOAD":
-                mode = "cload"
+            mode = {"NODE": "node", "CLOAD": "cload"}.get(s[1:].split(",")[0].strip().upper())
             continue
         fields = [f for f in s.split(",") if f.strip()]
         if mode == "node":
-            i = int(fields[0])
-            nodes[i] = np.array([float(f) for f in fields[1:4]])
-            if name:
-                sets[name.upper()].append(i)
-        elif mode == "nset":
-            sets[name].extend(int(f) for f in fields)
+            nodes[int(fields[0])] = np.array([float(f) for f in fields[1:4]])
         elif mode == "cload":
             cloads.append((int(fields[0]), int(fields[1]), float(fields[2])))
-    return nodes, {k: np.array(v, dtype=np.int64) for k, v in sets.items()}, cloads
+    return nodes, cloads
 
 
 def _skew(v: np.ndarray) -> np.ndarray:

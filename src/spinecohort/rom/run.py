@@ -107,6 +107,7 @@ def run_case(
     seconds = peak = 0.0
     target = load_vector_nmm(model, case, moment_nmm)
     load = None  # the first solve: the load case's moment vector as the ROT NODE's *CLOAD
+    coords = {i + 1: x for i, x in enumerate(model.fe.nodes)}  # deck node id -> mm, for the reactions
     for iteration in range(int(moment_iterations) + 1):
         name = job if iteration == 0 else f"{job}_m{iteration}"
         deck = workdir / f"{name}.inp"
@@ -138,7 +139,7 @@ def run_case(
                 break
         rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP"]
         if moment_iterations:
-            _log_iteration(model, case, deck, res.node_prints, iteration, load, target)
+            _log_iteration(model, case, deck, res.node_prints, coords, iteration, load, target)
         if not converged or not rot_prints or iteration == moment_iterations:
             break
         # the *CLOAD is the generalised force conjugate to the ROT NODE's rotation vector: the load that
@@ -156,8 +157,7 @@ def run_case(
     axis, sign = LOAD_CASES[case]
     load_axis = model.frames[model.top][:, axis]
     curve = np.array([[b.time, sign * np.degrees(b.values[0] @ load_axis)] for b in rot_prints])
-    coords = {i + 1: x for i, x in enumerate(model.fe.nodes)}
-    rf = [r for r in reactions(coords, res.node_prints) if abs(r.time - last.time) < 1e-9]
+    rf = _reaction_at(coords, res.node_prints, last.time)
     return CaseResult(
         case,
         segment_rotations_deg(model, disp),
@@ -167,22 +167,27 @@ def run_case(
         peak,
         float(last.time),
         attempt,
-        rf[-1].carried_nmm() if rf else np.full(3, np.nan),
-        rf[-1].force_n if rf else np.full(3, np.nan),
+        rf.carried_nmm() if rf else np.full(3, np.nan),
+        rf.force_n if rf else np.full(3, np.nan),
         np.asarray(load if load is not None else target, dtype=np.float64),
         np.asarray(target, dtype=np.float64),
         iteration,
     )
 
 
-def _log_iteration(model: RomModel, case: str, deck: Path, prints, iteration: int, load, target) -> None:
+def _reaction_at(coords: dict, prints, time: float):
+    """The fixed nodes' `Reaction` printed at step time ``time`` (None if there is none)."""
+    rf = [r for r in reactions(coords, prints) if abs(r.time - time) < 1e-9]
+    return rf[-1] if rf else None
+
+
+def _log_iteration(model: RomModel, case: str, deck: Path, prints, coords, iteration: int, load, target) -> None:
     """One moment iteration's *CLOAD, carried moment, top rotation and segment ROMs (the log)."""
     ep = [b for b in prints if b.node_set.upper() == "EPNODES"]
     rot = [b for b in prints if b.node_set.upper() == "ROTTOP"]
     if not ep or not rot:
         return
-    coords = {i + 1: x for i, x in enumerate(model.fe.nodes)}
-    rf = [r for r in reactions(coords, prints) if abs(r.time - ep[-1].time) < 1e-9]
+    rf = _reaction_at(coords, prints, ep[-1].time)
     axis, sign = LOAD_CASES[case]
     rows = segment_rotations_deg(model, {int(i) - 1: v for i, v in zip(ep[-1].node_ids, ep[-1].values)})
     log.info(
@@ -191,7 +196,7 @@ def _log_iteration(model: RomModel, case: str, deck: Path, prints, iteration: in
         iteration,
         ep[-1].time,
         np.round(target if load is None else load, 1),
-        np.round(rf[-1].carried_nmm(), 1) if rf else "?",
+        np.round(rf.carried_nmm(), 1) if rf else "?",
         np.round(target, 1),
         np.round(np.degrees(rot[-1].values[0]), 3),
         {f"{u}-{lo}": round(float(sign * c[axis]), 3) for (u, lo), c in rows.items()},
@@ -396,19 +401,8 @@ def solve_model(
             **deck_kw,
         )
         log.info(
-            "%s %s %s-%s %s (%s): moment carried %s N.mm (load case %s), net reaction force %s N",
-            model_id,
-            mode,
-            model.top,
-            model.vertebrae[-1],
-            case,
-            variant,
-            np.round(r.carried_nmm, 1),
-            np.round(r.target_nmm, 1),
-            np.round(r.reaction_force_n, 4),
-        )
-        log.info(
-            "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments",
+            "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments; moment carried %s N.mm "
+            "(load case %s), net reaction force %s N",
             model_id,
             mode,
             model.top,
@@ -419,6 +413,9 @@ def solve_model(
             r.peak_rss_mb,
             r.curve[-1, 1],
             len(r.curve),
+            np.round(r.carried_nmm, 1),
+            np.round(r.target_nmm, 1),
+            np.round(r.reaction_force_n, 4),
         )
         table = rom_table(model, [r], model_id, mode)
         table.insert(2, "variant", variant)

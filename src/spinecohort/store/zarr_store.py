@@ -581,10 +581,9 @@ def check_surface_nodes(tri: np.ndarray, hexp: np.ndarray, surface_vertex: np.nd
     round to the stored values of their tri vertices in tri (B, n_tri, 3) mm (the store keeps them once)."""
     sv = np.asarray(surface_vertex)
     n_vol = hexp.shape[1] - len(sv)
+    sel = vertex_selector(sv)
     for k in range(len(hexp)):  # one model at a time: no shard-sized temporaries
-        diff = (quantize_mm(hexp[k, n_vol:], encoding) != quantize_mm(tri[k, vertex_selector(sv)], encoding)).any(
-            axis=1
-        )
+        diff = (quantize_mm(hexp[k, n_vol:], encoding) != quantize_mm(tri[k, sel], encoding)).any(axis=1)
         if diff.any():
             node = n_vol + int(np.flatnonzero(diff)[0])
             raise ValueError(
