@@ -1,6 +1,6 @@
 """Tests of spinecohort.fe.connections and spinecohort.fe.connectivity: every deck the project exports is one
 mechanical body (each posterior arch on its vertebral body, the sacrum on the S1 plate, the pelvis on the
-sacrum, the femoral heads on the pelvis, the annulus and nucleus C3D8R), checked by graph reachability from the fixed
+sacrum, the femoral heads on the pelvis, the annulus C3D8R, the nucleus C3D20R tied to its neighbours), checked by graph reachability from the fixed
 pelvis; a part held only by tension-only springs is reported by name."""
 
 import shutil
@@ -12,6 +12,7 @@ import pytest
 from spinecohort.fe.connections import CONNECTOR_TABLE, posterior_wall, skin_pieces, spread_nodes, truss_pairs
 from spinecohort.fe.connectivity import ConnectivityError, check_connected, unreachable_report
 from spinecohort.fe.export import DEFAULT_MATERIALS, fe_model, write_deck
+from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
 
 
 def test_truss_pairs_join_every_attachment_node_to_every_target_and_to_each_other():
@@ -84,7 +85,10 @@ def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(t
     etype, gaps = fe.element_blocks["FACETS"]
     # 16 segments x 2 sides, a joint gap and an extension stop each, as 20 mm compression-only struts; the new
     # nodes come after the template's
-    assert etype == "SPRINGA" and len(gaps) == 64 and len(fe.nodes) == n + 128 and gaps.min() >= n
+    # (then the quadratic nucleus' midside nodes, one per distinct nucleus edge)
+    n_mid = len(quadratic_hexes(template.nodes, fe.element_blocks["HEXES_NP"][1][:, :8])[0])
+    assert etype == "SPRINGA" and len(gaps) == 64 and len(fe.nodes) == n + 128 + n_mid and gaps.min() >= n
+    assert gaps.max() < n + 128
     np.testing.assert_array_equal(fe.nodes[:n], template.nodes)
     # each strut runs from its lower node to its upper one along the contact direction, 20 mm long
     direction = np.array(
@@ -104,15 +108,26 @@ def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(t
     assert [tuple(s.gap[1]) for s in gap.sections if s.gap is not None] == [tuple(d) for d in direction]
     # and the deck without facets has none
     bare = fe_model(template, materials=replace(DEFAULT_MATERIALS, facets=None))
-    assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n
+    assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n + n_mid
 
 
-def test_exported_disc_is_c3d8r_and_renumbered_hexes_keep_their_connectivity(template):
+def test_exported_disc_is_c3d8r_annulus_and_c3d20r_nucleus_tied_to_its_neighbours(template):
     fe = fe_model(template)
-    (t_hex, hexes), (t_af, af) = fe.element_blocks["HEXES"], fe.element_blocks["HEXES_DISC"]
-    n_af = sum(len(v) for k, v in template.elsets.items() if k.endswith(("_AF", "_NP")))
-    assert (t_hex, t_af) == ("C3D8", "C3D8R") and len(af) == n_af and len(hexes) + n_af == len(template.hexes)
-    both = np.concatenate([hexes, af])
+    (t_hex, hexes), (t_af, af), (t_np, nuc) = (fe.element_blocks[b] for b in ("HEXES", "HEXES_DISC", "HEXES_NP"))
+    n_af = sum(len(v) for k, v in template.elsets.items() if k.endswith("_AF"))
+    n_np = sum(len(v) for k, v in template.elsets.items() if k.endswith("_NP"))
+    assert (t_hex, t_af, t_np) == ("C3D8", "C3D8R", "C3D20R") and (len(af), len(nuc)) == (n_af, n_np)
+    assert len(hexes) + n_af + n_np == len(template.hexes)
+    # every midside node sits at its edge's midpoint; the ones on an edge of a linear neighbour (cartilage
+    # endplate, annulus) are tied to it
+    corners = fe.nodes[nuc[:, :8]][:, HEX20_EDGES].mean(axis=2)
+    np.testing.assert_allclose(fe.nodes[nuc[:, 8:]], corners, atol=1e-12)
+    ties = fe.midside_ties
+    assert (
+        len(ties) and np.isin(ties[:, 1:], np.concatenate([hexes, af])).all() and np.isin(ties[:, 0], nuc[:, 8:]).all()
+    )
+    np.testing.assert_allclose(fe.nodes[ties[:, 0]], fe.nodes[ties[:, 1:]].mean(axis=1), atol=1e-12)
+    both = np.concatenate([hexes, af, nuc[:, :8]])
     for name, kind in template.elset_kind.items():
         if kind == "hex":  # the same elements under the same set name, in the new numbering
             np.testing.assert_array_equal(

@@ -3,6 +3,7 @@ the rom_model / rom_validation rules.  Closed-form cases: a pure moment on an el
 theory, a linear two-block unit's symmetry; the test-config DAG solves one lumbar functional unit (L3-L4)
 nonlinear with tension-only ligaments."""
 
+import dataclasses
 import json
 import re
 import shutil
@@ -15,11 +16,12 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, write_inp
+from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, model_to_inp_text, write_inp
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.connections import arch_nodes
 from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config, read_deck_points
 from spinecohort.fe.facets import FacetContact, facet_gaps, vertebra_frame
+from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import accepted_interval, orderings, validate, validation_markdown
 from spinecohort.rom.deck import rom_deck_text
@@ -77,6 +79,50 @@ def block_rom_model(parts, materials, etype="C3D8I", nx=4, nz_per=(8,), lengths=
         np.arange(len(hexes)),
         np.arange(len(nodes)),
     )
+
+
+def quadratic_soft_layers(m: RomModel, soft_sets: list[str]) -> None:
+    """Turn the hexes of `soft_sets` of a `block_rom_model` into C3D20R (their own block, tied to the rest)."""
+    etype, hexes = m.fe.element_blocks["HEXES"]
+    soft = np.zeros(len(hexes), bool)
+    for name in soft_sets:
+        soft[m.fe.element_sets[name]] = True
+    midside, hex20, ties = quadratic_hexes(m.fe.nodes, hexes[soft], hexes[~soft])
+    new_pos = np.empty(len(hexes), np.int64)
+    new_pos[~soft] = np.arange((~soft).sum())
+    new_pos[soft] = (~soft).sum() + np.arange(soft.sum())
+    m.fe.nodes = np.concatenate([m.fe.nodes, midside])
+    m.fe.element_blocks = {"HEXES": (etype, hexes[~soft]), "HEXES_SOFT": ("C3D20R", hex20)}
+    m.fe.element_sets = {k: np.sort(new_pos[v]) for k, v in m.fe.element_sets.items()}
+    m.fe.midside_ties = ties
+
+
+def test_quadratic_hexes_add_one_midside_node_per_edge_and_tie_the_shared_ones():
+    # two unit cubes side by side share a face: 12 + 12 - 4 = 20 distinct edges, one midside node each, at the
+    # edge's midpoint; with the second cube linear, the 4 edges of the shared face are tied to their corners
+    nodes, hexes, _, _ = column(1, (2,), (2.0,), 1.0)  # 1 x 1 x 2 cubes of 1 mm
+    midside, hex20, ties = quadratic_hexes(nodes, hexes[:1], hexes[1:])
+    assert len(midside) == 12 and hex20.shape == (1, 20)
+    np.testing.assert_allclose(np.vstack([nodes, midside])[hex20[0, 8:]], nodes[hexes[0]][HEX20_EDGES].mean(1))
+    assert len(ties) == 4
+    np.testing.assert_allclose(np.vstack([nodes, midside])[ties[:, 0], 2], 1.0)  # on the shared face z = 1 mm
+    np.testing.assert_allclose(np.vstack([nodes, midside])[ties[:, 0]], nodes[ties[:, 1:]].mean(1))
+    midside, hex20, ties = quadratic_hexes(nodes, hexes)
+    assert len(midside) == 20 and len(ties) == 0
+    # the deck: 21 numbers an element over two lines (16 + 5), and three equations per tie
+    fe = FEModel(
+        np.vstack([nodes, midside]),
+        {"Q": ("C3D20R", hex20)},
+        materials=[LinearElastic("M", 1.0, 0.3)],
+        sections=[Section("Q", "M")],
+        midside_ties=np.array([[12, 0, 1]]),
+    )
+    text = model_to_inp_text(fe)
+    ids = [str(i) for i in [1, *(hex20[0] + 1)]]
+    assert f"*ELEMENT, TYPE=C3D20R, ELSET=Q\n{', '.join(ids[:16])},\n{', '.join(ids[16:])}\n" in text
+    assert "*EQUATION\n3\n13, 1, 1., 1, 1, -0.5, 2, 1, -0.5\n3\n13, 2, 1., 1, 2, -0.5, 2, 2, -0.5\n" in text
+    with pytest.raises(ValueError, match="dependent node"):
+        model_to_inp_text(dataclasses.replace(fe, midside_ties=np.array([[12, 0, 1], [12, 2, 3]])))
 
 
 # --- kinematics and bookkeeping (no solver) ------------------------------------------------------------
@@ -684,6 +730,17 @@ def test_ccx_c3d8r_on_a_distorted_column_does_not_keep_moment_equilibrium(tmp_pa
         carried[etype] = r.carried_nmm[1] / 75.0
     assert carried["C3D8"] == pytest.approx(1.0, abs=2e-3)
     assert carried["C3D8R"] < 0.9  # measured 0.26
+    # the fix (docs/moment_check.md): the soft layers as C3D20R, tied to the C3D8 bone by midside equations,
+    # keep equilibrium like C3D8 without C3D8's locking
+    m = block_rom_model(parts, mats, etype="C3D8", nz_per=(2,) * 7, lengths=(20, 10, 20, 10, 20, 10, 20), side=40.0)
+    x, z = m.fe.nodes, m.fe.nodes[:, 2]
+    x[:, 1] += 0.004 * (z - 60.0) ** 2
+    x[:, 0] *= 1 + 0.1 * np.sin(z / 15.0)
+    x += jitter
+    quadratic_soft_layers(m, [f"P_{p}" for p in parts if p[0] == "N"])
+    r = run_case(m, "lateral_right", tmp_path / "C3D20R", **kw)
+    assert np.linalg.norm(r.reaction_force_n) < 1e-3
+    assert r.carried_nmm[1] / 75.0 == pytest.approx(1.0, abs=5e-3)
 
 
 @needs_ccx
@@ -727,6 +784,8 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
         "*HYPERELASTIC, MOONEY-RIVLIN\n0.12, 0.03, 0.0111",
         "*ELEMENT, TYPE=C3D8, ELSET=HEXES",
         "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_DISC",
+        "*ELEMENT, TYPE=C3D20R, ELSET=HEXES_NP",
+        "*EQUATION\n3\n",
         "*USER MATERIAL, CONSTANTS=10",
         "SYSTEM=CYLINDRICAL",
         "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",

@@ -32,6 +32,7 @@ NODES_PER_ELEMENT = {
     "C3D8": 8,
     "C3D8I": 8,
     "C3D8R": 8,
+    "C3D20R": 20,
     "S3": 3,
     "S4": 4,
     "S4R": 4,
@@ -44,6 +45,7 @@ MESHIO_CELL_TYPE = {
     "C3D8": "hexahedron",
     "C3D8I": "hexahedron",
     "C3D8R": "hexahedron",
+    "C3D20R": "hexahedron20",  # same node order in VTK and Abaqus
     "S3": "triangle",
     "S4": "quad",
     "S4R": "quad",
@@ -51,7 +53,7 @@ MESHIO_CELL_TYPE = {
     "T3D2": "line",
     "GAPUNI": "line",
 }
-SOLID_TYPES = {"C3D8", "C3D8I", "C3D8R"}
+SOLID_TYPES = {"C3D8", "C3D8I", "C3D8R", "C3D20R"}
 SHELL_TYPES = {"S3", "S4", "S4R"}
 # ccx 2.20 rejects or mis-handles these (see reference/calculix.md): refuse them instead of writing a
 # deck that fails or silently shifts results.
@@ -147,6 +149,9 @@ class FEModel:
     sections: list[Section] = field(default_factory=list)
     heading: str = "spinecohort model"
     orientations: list[Orientation] = field(default_factory=list)
+    #: (K, 3) 0-based [m, a, b]: node m moves as the mean of nodes a and b (*EQUATION per direction); the
+    #: midside nodes of quadratic hexes on an edge of a linear neighbour (`spinecohort.fe.quadratic`)
+    midside_ties: np.ndarray | None = None
 
     @property
     def n_elements(self) -> int:
@@ -208,6 +213,16 @@ def validate_model(model: FEModel) -> None:
             raise ValueError(f"element block {name!r}: connectivity must be integer, got {conn.dtype}")
         if conn.min() < 0 or conn.max() >= n_nodes:
             raise ValueError(f"element block {name!r}: node indices outside 0..{n_nodes - 1}")
+    if model.midside_ties is not None and len(model.midside_ties):
+        ties = np.asarray(model.midside_ties)
+        if ties.ndim != 2 or ties.shape[1] != 3 or not np.issubdtype(ties.dtype, np.integer):
+            raise ValueError(f"midside_ties must be a (K, 3) integer array [m, a, b], got shape {ties.shape}")
+        if ties.min() < 0 or ties.max() >= n_nodes:
+            raise ValueError(f"midside_ties have node indices outside 0..{n_nodes - 1}")
+        dependent = ties[:, 0]
+        if len(np.unique(dependent)) != len(dependent) or np.isin(dependent, ties[:, 1:]).any():
+            # ccx removes a dependent DOF from the system: it may appear once, and never as an independent term
+            raise ValueError("midside_ties: a dependent node appears twice or also as an independent node")
     n_el = model.n_elements
     for name, idx in model.node_sets.items():
         _check_name("node set", name)
@@ -304,9 +319,22 @@ def format_node_lines(ids: np.ndarray, points_mm: np.ndarray, decimals: int = 6)
 
 
 def _format_int_rows(rows: np.ndarray) -> str:
+    """Rows of integers, IDS_PER_LINE a line: a longer row (a C3D20R element: id + 20 nodes) ends its first
+    line with a comma and continues on the next (the Abaqus rule ccx 2.20 reads)."""
     rows = np.asarray(rows, dtype=np.int64)
-    line = ", ".join(["%d"] * rows.shape[1]) + "\n"
+    k = rows.shape[1]
+    cuts = range(IDS_PER_LINE, k, IDS_PER_LINE)
+    line = ",\n".join(", ".join(["%d"] * len(c)) for c in np.split(np.arange(k), list(cuts))) + "\n"
     return (line * len(rows)) % tuple(rows.ravel().tolist())
+
+
+def equation_text(ties: np.ndarray) -> str:
+    """*EQUATION cards of midside ties [m, a, b] (0-based): u_m - u_a/2 - u_b/2 = 0 in directions 1-3."""
+    ties = np.asarray(ties, dtype=np.int64) + 1
+    rows = np.repeat(ties, 3, axis=0)
+    dofs = np.tile(np.arange(1, 4), len(ties))
+    table = np.column_stack([rows[:, 0], dofs, rows[:, 1], dofs, rows[:, 2], dofs]).ravel().tolist()
+    return "*EQUATION\n" + ("3\n%d, %d, 1., %d, %d, -0.5, %d, %d, -0.5\n" * len(rows)) % tuple(table)
 
 
 def format_id_list(ids_1based: np.ndarray) -> str:
@@ -399,6 +427,8 @@ def model_to_inp_text(model: FEModel, decimals: int = 6, provenance: str = "") -
         parts += [f"*NSET, NSET={name}\n", format_id_list(np.asarray(idx) + 1)]
     for name, idx in model.element_sets.items():
         parts += [f"*ELSET, ELSET={name}\n", format_id_list(np.asarray(idx) + 1)]
+    if model.midside_ties is not None and len(model.midside_ties):
+        parts.append(equation_text(model.midside_ties))
     parts += [_orientation_text(o) for o in model.orientations]
     parts += [_material_text(m) for m in model.materials]
     parts += [_section_text(model, s) for s in model.sections]

@@ -119,21 +119,49 @@ DEFAULT_LIGAMENTS = {
 }
 DEFAULT_MATERIALS = FEMaterials()
 ANNULUS_MATERIAL = "ELASTIC_FIBER_AF"  # ccx selects its built-in law by this name prefix
-#: the annulus element of every deck: ccx 2.20's ELASTIC_FIBER law aborts with C3D8/C3D8I (docs/rom.md)
+#: the annulus' element of every deck: ccx 2.20's ELASTIC_FIBER law aborts with C3D8/C3D8I, and now and then with
+#: C3D20R (docs/rom.md "Element choice")
 DISC_HEX_TYPE = "C3D8R"
+#: the nucleus' element: quadratic, tied to the annulus and endplates by midside *EQUATIONs (`spinecohort.fe.quadratic`).
+#: A C3D8R nucleus leaked moment (the T10-S1 base carried 87 % of 7.5 N.m), C3D8 locks it (docs/moment_check.md)
+NUCLEUS_HEX_TYPE = "C3D20R"
 #: hex sets (by name suffix) of the disc soft tissue, which get ``disc_hex_type``: the annulus (ccx 2.20's fibre
 #: law aborts with C3D8/C3D8I) and the nucleus (a fully integrated C3D8 locks the nearly incompressible nucleus in
 #: bending: 2.5x the stiffness of C3D20R and C3D8I, docs/rom.md "Element choice")
 DISC_TYPE_TISSUES: tuple[str, ...] = ("_AF", "_NP")
 
 
-def disc_hexes(template: HexTemplate) -> np.ndarray:
-    """(E,) bool: the template's hexes of the disc soft tissue (`DISC_TYPE_TISSUES`)."""
+def disc_hexes(template: HexTemplate, tissues: tuple[str, ...] = DISC_TYPE_TISSUES) -> np.ndarray:
+    """(E,) bool: the template's hexes of the disc soft tissue (`DISC_TYPE_TISSUES`; ``("_NP",)``: the nucleus)."""
     disc = np.zeros(len(template.hexes), bool)
     for name, idx in template.elsets.items():
-        if template.elset_kind[name] == "hex" and name.endswith(DISC_TYPE_TISSUES):
+        if template.elset_kind[name] == "hex" and name.endswith(tissues):
             disc[idx] = True
     return disc
+
+
+def hex_blocks(
+    template: HexTemplate,
+    hex_ids: np.ndarray,
+    hex_type: str,
+    disc_hex_type: str | None,
+    nucleus_hex_type: str | None = None,
+) -> tuple[np.ndarray, list[tuple[str, str, int]]]:
+    """Order the template hexes `hex_ids` into element blocks by element type: ``HEXES`` (bone, cartilage
+    endplates: `hex_type`), ``HEXES_DISC`` (annulus, and the nucleus unless it differs: `disc_hex_type`,
+    None = `hex_type`), ``HEXES_NP`` (the nucleus when `nucleus_hex_type` differs from the annulus'), each in
+    template order.  Returns the reordered ids and [(block, type, count)] in that order."""
+    disc_hex_type = disc_hex_type or hex_type
+    nucleus_hex_type = nucleus_hex_type or disc_hex_type
+    hex_ids = np.asarray(hex_ids, dtype=np.int64)
+    disc, nucleus = disc_hexes(template)[hex_ids], disc_hexes(template, ("_NP",))[hex_ids]
+    kind = np.where(disc & (nucleus_hex_type != disc_hex_type) & nucleus, 2, np.where(disc, 1, 0))
+    if disc_hex_type == hex_type:
+        kind[kind == 1] = 0
+    order = np.argsort(kind, kind="stable")
+    names = {0: ("HEXES", hex_type), 1: ("HEXES_DISC", disc_hex_type), 2: ("HEXES_NP", nucleus_hex_type)}
+    counts = np.bincount(kind, minlength=3)
+    return hex_ids[order], [(*names[k], int(counts[k])) for k in range(3) if counts[k]]
 
 
 #: node sets by which an exported deck is fixed, in order of preference
@@ -302,24 +330,27 @@ def fe_model(
     materials: FEMaterials | None = None,
     disc_hex_type: str | None = DISC_HEX_TYPE,
     connectors: bool = True,
+    nucleus_hex_type: str | None = NUCLEUS_HEX_TYPE,
 ) -> FEModel:
     """The template as an FEModel with the given node coordinates (default: the template's own): one
     connected mechanical body (`spinecohort.fe.connections`).
 
-    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates: `hex_type`), ``HEXES_DISC`` (annulus and
-    nucleus, `DISC_TYPE_TISSUES`: `disc_hex_type`, C3D8R as the ROM analysis validated; ccx 2.20's fibre law aborts
-    with C3D8/C3D8I, and C3D8 locks the nearly incompressible nucleus), ``SURFACES`` (S3 skins), ``LIGAMENTS``
+    Element blocks, in this order: ``HEXES`` (bone, cartilage endplates: `hex_type`), ``HEXES_DISC`` (annulus:
+    `disc_hex_type`, C3D8R; ccx 2.20's fibre law aborts with C3D8/C3D8I), ``HEXES_NP`` (nucleus: `nucleus_hex_type`,
+    C3D20R with its midside nodes tied to its neighbours, `FEModel.midside_ties`; C3D8R leaks moment, C3D8
+    locks), ``SURFACES`` (S3 skins), ``LIGAMENTS``
     (tension-only SPRINGA), ``CONNECTORS`` (linear SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the
     facet nodes on their vertebra), ``FACETS`` (facet-joint contact struts, SPRINGA, `spinecohort.fe.facets`; element sets
     ``FACET_*``).  Nodes: the template's (ids 1..N, template order), then the facet nodes (materials.facets None:
-    none).  Hex elements are therefore numbered bone and endplates first, then disc soft tissue, each in template
-    order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model). disc_hex_type None: the disc
+    none), then the quadratic hexes' midside nodes.  Hex elements are therefore numbered bone and endplates first,
+    then annulus, then nucleus, each in template order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model). disc_hex_type None: the disc
     in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
     (a deck of loose parts, for pictures only).
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
     """
     from spinecohort.fe.connections import CONNECTOR_TABLE, model_connectors, posterior_wall, truss_pairs
     from spinecohort.fe.facets import facet_nodes, facet_pairs
+    from spinecohort.fe.quadratic import quadratic_blocks
 
     mats = DEFAULT_MATERIALS if materials is None else materials
     include_all = mats.include_all if include_all is None else include_all
@@ -329,16 +360,15 @@ def fe_model(
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
-    if disc_hex_type is not None and disc_hex_type != hex_type:
-        disc = disc_hexes(template)
-    else:
-        disc = np.zeros(len(template.hexes), bool)
-    hex_order = np.concatenate([np.flatnonzero(~disc), np.flatnonzero(disc)])
+    hex_order, hex_block_list = hex_blocks(
+        template, np.arange(len(template.hexes)), hex_type, disc_hex_type, nucleus_hex_type
+    )
     pos_of_hex = np.empty(len(template.hexes), dtype=np.int64)
     pos_of_hex[hex_order] = np.arange(len(hex_order))
-    blocks = {"HEXES": (hex_type, template.hexes[~disc])}
-    if disc.any():
-        blocks["HEXES_DISC"] = (disc_hex_type, template.hexes[disc])
+    blocks, start = {}, 0
+    for name, etype, count in hex_block_list:
+        blocks[name] = (etype, template.hexes[hex_order[start : start + count]])
+        start += count
     blocks["SURFACES"] = ("S3", template.tris)
     blocks["LIGAMENTS"] = ("SPRINGA", template.ligaments[lig_keep])
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}
@@ -399,6 +429,8 @@ def fe_model(
     if fn is not None:
         sections += fn.section_list()
         pts = np.concatenate([pts, fn.points])
+    # quadratic hexes' midside nodes after every other node, tied to their linear neighbours (`fe.quadratic`)
+    pts, blocks, ties = quadratic_blocks(pts, blocks)
     node_sets = dict(template.nsets)
     if "PELVIS" in template.elsets and "PELVIS" not in node_sets:
         node_sets["PELVIS"] = np.unique(template.tris[template.elsets["PELVIS"]])
@@ -411,6 +443,7 @@ def fe_model(
         sections=sections,
         heading=heading,
         orientations=list(orientations.values()),
+        midside_ties=ties,
     )
 
 

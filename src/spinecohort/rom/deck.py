@@ -5,6 +5,8 @@ prints of every endplate node and of the ROT NODE.  Units: mm, N, N.mm (radians 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from spinecohort.cohort.landmarks import LEVELS
@@ -198,6 +200,12 @@ def model_load_text(
     n2 = len(template.grid.nodes)
     inf, sup = body_layer(template, top, 0.0), body_layer(template, top, 1.0)
     rigid = np.arange(inf * n2, (sup + 1) * n2)
+    if fe.midside_ties is not None and len(fe.midside_ties):
+        # a quadratic disc's midside node on the rigid vertebra's endplate moves with it: it joins the rigid body
+        # (no *EQUATION hangs on nodes the rigid body already constrains)
+        on_rigid = np.isin(fe.midside_ties[:, 1:], rigid).all(axis=1)
+        rigid = np.concatenate([rigid, fe.midside_ties[on_rigid, 0]])
+        fe = dataclasses.replace(fe, midside_ties=fe.midside_ties[~on_rigid])
     frame = vertebra_frame(template, fe.nodes, top)[0]
     axis, sign = LOAD_CASES[case]
     first = min(MODEL_INCREMENT_NMM / moment_nmm, MODEL_STEP_DEFAULTS["max_increment"])

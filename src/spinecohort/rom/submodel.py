@@ -48,13 +48,14 @@ from spinecohort.fe.export import (
     DEFAULT_MATERIALS,
     FEMaterials,
     annulus_ring_sets,
-    disc_hexes,
     disc_orientations,
+    hex_blocks,
     hex_section,
     ligament_table,
     material_cards,
 )
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
+from spinecohort.fe.quadratic import quadratic_blocks
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 from spinecohort.rom.ribs import RibHeads, rib_head_nodes
 
@@ -117,12 +118,13 @@ def extract_rom_model(
     disc_hex_type: str | None = "C3D8R",
     facets: FacetContact | None = None,
     ribs: RibHeads | None = None,
+    nucleus_hex_type: str | None = "C3D20R",
 ) -> RomModel:
     """The ROM submodel of vertebrae ``top``..``bottom`` (see the module docstring) with the model's
     coordinates ``points`` (N, 3) mm in template node order.
 
-    hex_type: element of bone and cartilage endplates; disc_hex_type: element of the annulus and the nucleus
-    (None: the same as hex_type); see docs/rom.md for why they differ.
+    hex_type: element of bone and cartilage endplates; disc_hex_type: element of the annulus (None: the same as
+    hex_type); nucleus_hex_type: element of the nucleus (None: the annulus'); see docs/rom.md for why they differ.
     ligament_groups: the groups to keep (default all, ALL per ``include_all``); () = discs alone.
     facets: facet-joint contact, a strut (or GAPUNI) per facet joint and stop (`FacetContact`); None = no contact.
     ribs: the specimens' rib heads as springs (`spinecohort.rom.ribs`); None = none (a spine without ribs)."""
@@ -187,18 +189,20 @@ def extract_rom_model(
         rib_conn = np.stack([first_new + rn.springs[:, 0], new_of[rn.springs[:, 1]]], 1)
         source = np.concatenate([source, np.full(len(rn.points), -1)])
 
-    # disc soft-tissue hexes (annulus, nucleus) last, in their own block when their element type differs
-    disc = disc_hexes(template)
-    disc_hex_type = disc_hex_type or hex_type
-    if disc_hex_type != hex_type:
-        hex_ids = np.concatenate([hex_ids[~disc[hex_ids]], hex_ids[disc[hex_ids]]])
+    # disc soft-tissue hexes (annulus, nucleus) last, in their own blocks when their element types differ
+    hex_ids, hex_block_list = hex_blocks(template, hex_ids, hex_type, disc_hex_type, nucleus_hex_type)
     hexes = new_of[template.hexes[hex_ids]]
     lig_conn = new_of[ligs]
-    if disc_hex_type != hex_type:
-        n_disc = int(disc[hex_ids].sum())
-        blocks = {"HEXES": (hex_type, hexes[:-n_disc]), "HEXES_DISC": (disc_hex_type, hexes[-n_disc:])}
-    else:
-        blocks = {"HEXES": (hex_type, hexes)}
+    blocks, start = {}, 0
+    for name, etype, count in hex_block_list:
+        blocks[name] = (etype, hexes[start : start + count])
+        start += count
+    # quadratic hexes (the nucleus), conforming to their linear neighbours by midside ties (`spinecohort.fe.quadratic`;
+    # docs/moment_check.md: C3D8R discs leak moment, C3D8 locks the nucleus)
+    n_before = len(pts)
+    pts, blocks, ties = quadratic_blocks(pts, blocks)
+    ties = np.zeros((0, 3), dtype=np.int64) if ties is None else ties
+    source = np.concatenate([source, np.full(len(pts) - n_before, -1)])
     elsets: dict[str, np.ndarray] = {}
     pos_of_hex = np.full(len(template.hexes), -1, dtype=np.int64)
     pos_of_hex[hex_ids] = np.arange(len(hex_ids))
@@ -270,6 +274,14 @@ def extract_rom_model(
             arch_springs.append((v, pairs))
     if bottom == "S1":
         fixed = new_of[np.arange(n2)]
+    if len(ties):
+        # a midside node on an edge of the fixed or the rigid vertebra moves with it: it joins that set instead
+        # of an *EQUATION whose independent nodes are themselves constrained
+        on_fixed = np.isin(ties[:, 1:], fixed).all(axis=1)
+        fixed = np.concatenate([fixed, ties[on_fixed, 0]])
+        on_rigid = np.isin(ties[:, 1:], rigid[top]).all(axis=1) & ~on_fixed
+        rigid[top] = np.concatenate([rigid[top], ties[on_rigid, 0]])
+        ties = ties[~on_fixed & ~on_rigid]
     if arch_springs:
         first = sum(len(c) for _, c in blocks.values())
         blocks["ARCHES"] = ("SPRINGA", np.concatenate([p for _, p in arch_springs]))
@@ -293,6 +305,7 @@ def extract_rom_model(
         sections=sections,
         heading=heading or f"spinecohort ROM model {top}-{bottom}",
         orientations=[o for o in orientations.values() if o.name in used_orient],
+        midside_ties=ties if len(ties) else None,
     )
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(len(hexes)), source, lig_counts)
 
@@ -302,7 +315,7 @@ def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
     minimum scaled Jacobian."""
     from spinecohort.mesh.quality import scaled_jacobian
 
-    hexes = np.concatenate([c for t, c in model.fe.element_blocks.values() if t in SOLID_TYPES])
+    hexes = np.concatenate([c[:, :8] for t, c in model.fe.element_blocks.values() if t in SOLID_TYPES])
     sj = scaled_jacobian(model.fe.nodes, hexes)
     bad = int((sj <= min_scaled_jacobian).sum())
     if bad:
