@@ -318,7 +318,7 @@ def test_rib_heads_bridge_the_disc_with_three_spring_groups(template):
     assert t == "SPRINGA" and len(springs) == 14
     slopes = [sec.spring_force_elongation[1][0] / 100.0 for sec in m.fe.sections if sec.elset.startswith("RIB_T2T3_R")]
     assert sorted(np.round(slopes, 6)) == pytest.approx([200 / 3] * 6 + [200.0])
-    heads = m.fe.nodes[-2:]
+    heads = m.fe.nodes[np.unique(springs[:, 0])]  # the two head nodes (the nucleus' midside nodes come after them)
     rim = m.fe.nodes[springs[:, 1]]
     centre = m.fe.nodes[np.concatenate([m.endplate_nodes["T2"], m.endplate_nodes["T3"]])].mean(0)
     # the heads sit outside the rim, posterolaterally, one on each side of the mid-sagittal plane
@@ -362,24 +362,24 @@ def test_rom_submodel_of_a_functional_unit(template):
     m = extract_rom_model(template, template.nodes, "L3", "L4")
     n2, nq = len(template.grid.nodes), len(template.grid.quads)
     res = template.resolution
-    # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes; the annulus and
-    # nucleus hexes in their own C3D8R block, the rest C3D8
-    n_af = len(template.elsets["D_L3L4_AF"]) + len(template.elsets["D_L3L4_NP"])
-    assert m.fe.element_blocks["HEXES"][0] == "C3D8" and m.fe.element_blocks["HEXES_DISC"] == (
-        "C3D8R",
-        m.fe.element_blocks["HEXES_DISC"][1],
-    )
-    assert len(m.fe.element_blocks["HEXES_DISC"][1]) == n_af
-    assert len(m.fe.element_blocks["HEXES"][1]) + n_af == nq * (2 * res.body_layers + res.disc_layers + 2)
-    disc_ids = set(range(len(m.fe.element_blocks["HEXES"][1]), len(m.hex_elements)))
+    # L3 and L4 bodies (body_layers each) + the disc (disc_layers + 2 CEP layers) of hexes; the annulus in its own
+    # C3D8R block, the nucleus in a C3D20R block (tied to its neighbours), the rest C3D8
+    n_af, n_np = len(template.elsets["D_L3L4_AF"]), len(template.elsets["D_L3L4_NP"])
+    blocks = m.fe.element_blocks
+    assert (blocks["HEXES"][0], blocks["HEXES_DISC"][0], blocks["HEXES_NP"][0]) == ("C3D8", "C3D8R", "C3D20R")
+    assert (len(blocks["HEXES_DISC"][1]), len(blocks["HEXES_NP"][1])) == (n_af, n_np)
+    assert len(blocks["HEXES"][1]) + n_af + n_np == nq * (2 * res.body_layers + res.disc_layers + 2)
+    disc_ids = set(range(len(blocks["HEXES"][1]), len(m.hex_elements)))
     assert set(m.fe.element_sets["D_L3L4_AF"]) | set(m.fe.element_sets["D_L3L4_NP"]) == disc_ids
     assert not set(m.fe.element_sets["D_L3L4_CEP"]) & disc_ids
+    n_mid = len(np.unique(blocks["HEXES_NP"][1][:, 8:]))
+    assert m.fe.midside_ties is not None and np.isin(m.fe.midside_ties[:, 0], blocks["HEXES_NP"][1][:, 8:]).all()
     # ligaments L3-L4: SSL, ISL, 2 LF, 2 CL, 2 ITL, PLL, ALL = 10, one elset and table each
     assert m.ligament_groups == {"SSL": 1, "ISL": 1, "LF": 2, "CL": 2, "ITL": 2, "PLL": 1, "ALL": 1}
     assert len(m.fe.element_blocks["LIGAMENTS"][1]) == 10
     # hex nodes of the layers from L4's inferior to L3's superior endplate + the 8 arch anchor nodes of L3
-    # and L4 that the posterior ligaments use (16 ends, shared between none)
-    assert len(m.fe.nodes) == n2 * (2 * res.body_layers + res.disc_layers + 3) + 16
+    # and L4 that the posterior ligaments use (16 ends, shared between none) + the nucleus' midside nodes
+    assert len(m.fe.nodes) == n2 * (2 * res.body_layers + res.disc_layers + 3) + 16 + n_mid
     assert set(m.rigid_nodes) == {"L3"} and len(m.fixed_nodes) > n2
     assert not np.intersect1d(m.rigid_nodes["L3"], m.fixed_nodes).size
     no_all = extract_rom_model(template, template.nodes, "L3", "L4", include_all=False)
@@ -1058,8 +1058,8 @@ def test_k1_gradient_gives_each_annulus_ring_its_set_and_material(tmp_path, temp
     uniform = fe_model(template)
     ring_ids = [export.element_sets[f"D_L3L4_AF_R{r}"] for r in rings]
     assert np.array_equal(np.sort(np.concatenate(ring_ids)), uniform.element_sets["D_L3L4_AF"])
-    disc_first = len(export.element_blocks["HEXES"][1])  # the disc hexes follow the bone hexes, template order
-    disc_tpl = np.flatnonzero(disc_hexes(template))
+    disc_first = len(export.element_blocks["HEXES"][1])  # the annulus hexes follow the bone hexes, template order
+    disc_tpl = np.flatnonzero(disc_hexes(template, ("_AF",)))
     for r, ids in zip(rings, ring_ids):
         assert np.all(template.grid.quad_ring[disc_tpl[ids - disc_first] % nq] == r)
     fe["annulus"]["fibres"]["k1_outer_mpa"] = None
