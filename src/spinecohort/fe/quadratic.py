@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from spinecohort.fe.abaqus import SOLID_TYPES
+
 #: corner pairs (0-based) of the 12 edges of a hex, in the order of C3D20's midside nodes 9..20
 HEX20_EDGES = np.array(
     [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64
@@ -67,7 +69,7 @@ def quadratic_blocks(
     quad = [name for name, (etype, _) in blocks.items() if etype == quadratic_type]
     if not quad:
         return points_mm, blocks, None
-    linear = [conn for etype, conn in blocks.values() if etype != quadratic_type and np.shape(conn)[1:] == (8,)]
+    linear = [conn for etype, conn in blocks.values() if etype != quadratic_type and etype in SOLID_TYPES]
     conn8 = np.concatenate([blocks[name][1] for name in quad])
     midside, hex20, ties = quadratic_hexes(
         points_mm, conn8, np.concatenate(linear) if linear else np.zeros((0, 8), np.int64)
@@ -79,3 +81,10 @@ def quadratic_blocks(
         out[name] = (quadratic_type, hex20[start : start + n])
         start += n
     return np.concatenate([np.asarray(points_mm, dtype=np.float64), midside]), out, ties
+
+
+def ties_on(ties: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """(K,) bool: the tie's edge lies on `nodes` (a rigid body, the fixed nodes).  Such a midside node moves with
+    that set exactly (the midpoint of a rigidly moving or fixed edge), so it joins the set instead of hanging an
+    *EQUATION on nodes the set already constrains."""
+    return np.isin(np.asarray(ties)[:, 1:], nodes).all(axis=1)

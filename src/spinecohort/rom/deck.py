@@ -201,9 +201,10 @@ def model_load_text(
     inf, sup = body_layer(template, top, 0.0), body_layer(template, top, 1.0)
     rigid = np.arange(inf * n2, (sup + 1) * n2)
     if fe.midside_ties is not None and len(fe.midside_ties):
-        # a quadratic disc's midside node on the rigid vertebra's endplate moves with it: it joins the rigid body
-        # (no *EQUATION hangs on nodes the rigid body already constrains)
-        on_rigid = np.isin(fe.midside_ties[:, 1:], rigid).all(axis=1)
+        # a midside node on an edge of the rigid vertebra joins the rigid body (`spinecohort.fe.quadratic.ties_on`)
+        from spinecohort.fe.quadratic import ties_on
+
+        on_rigid = ties_on(fe.midside_ties, rigid)
         rigid = np.concatenate([rigid, fe.midside_ties[on_rigid, 0]])
         fe = dataclasses.replace(fe, midside_ties=fe.midside_ties[~on_rigid])
     frame = vertebra_frame(template, fe.nodes, top)[0]

@@ -55,7 +55,7 @@ from spinecohort.fe.export import (
     material_cards,
 )
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
-from spinecohort.fe.quadratic import quadratic_blocks
+from spinecohort.fe.quadratic import quadratic_blocks, ties_on
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 from spinecohort.rom.ribs import RibHeads, rib_head_nodes
 
@@ -274,12 +274,10 @@ def extract_rom_model(
             arch_springs.append((v, pairs))
     if bottom == "S1":
         fixed = new_of[np.arange(n2)]
-    if len(ties):
-        # a midside node on an edge of the fixed or the rigid vertebra moves with it: it joins that set instead
-        # of an *EQUATION whose independent nodes are themselves constrained
-        on_fixed = np.isin(ties[:, 1:], fixed).all(axis=1)
+    if len(ties):  # a midside node on an edge of the fixed or the rigid vertebra joins that set (`ties_on`)
+        on_fixed = ties_on(ties, fixed)
         fixed = np.concatenate([fixed, ties[on_fixed, 0]])
-        on_rigid = np.isin(ties[:, 1:], rigid[top]).all(axis=1) & ~on_fixed
+        on_rigid = ties_on(ties, rigid[top]) & ~on_fixed
         rigid[top] = np.concatenate([rigid[top], ties[on_rigid, 0]])
         ties = ties[~on_fixed & ~on_rigid]
     if arch_springs:
