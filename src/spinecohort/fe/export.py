@@ -125,9 +125,8 @@ DISC_HEX_TYPE = "C3D8R"
 #: the nucleus' element: quadratic, tied to the annulus and endplates by midside *EQUATIONs (`spinecohort.fe.quadratic`).
 #: A C3D8R nucleus leaked moment (the T10-S1 base carried 87 % of 7.5 N.m), C3D8 locks it (docs/moment_check.md)
 NUCLEUS_HEX_TYPE = "C3D20R"
-#: hex sets (by name suffix) of the disc soft tissue, which get ``disc_hex_type``: the annulus (ccx 2.20's fibre
-#: law aborts with C3D8/C3D8I) and the nucleus (a fully integrated C3D8 locks the nearly incompressible nucleus in
-#: bending: 2.5x the stiffness of C3D20R and C3D8I, docs/rom.md "Element choice")
+#: hex sets (by name suffix) of the disc soft tissue, the elements after the bone's: the annulus (``disc_hex_type``)
+#: and the nucleus (``nucleus_hex_type``, its own block when it differs; see `hex_blocks`)
 DISC_TYPE_TISSUES: tuple[str, ...] = ("_AF", "_NP")
 
 
@@ -146,11 +145,11 @@ def hex_blocks(
     hex_type: str,
     disc_hex_type: str | None,
     nucleus_hex_type: str | None = None,
-) -> tuple[np.ndarray, list[tuple[str, str, int]]]:
+) -> tuple[np.ndarray, dict[str, tuple[str, np.ndarray]]]:
     """Order the template hexes `hex_ids` into element blocks by element type: ``HEXES`` (bone, cartilage
     endplates: `hex_type`), ``HEXES_DISC`` (annulus, and the nucleus unless it differs: `disc_hex_type`,
     None = `hex_type`), ``HEXES_NP`` (the nucleus when `nucleus_hex_type` differs from the annulus'), each in
-    template order.  Returns the reordered ids and [(block, type, count)] in that order."""
+    template order.  Returns the reordered ids and {block: (type, (E, 8) template node indices)} in that order."""
     disc_hex_type = disc_hex_type or hex_type
     nucleus_hex_type = nucleus_hex_type or disc_hex_type
     hex_ids = np.asarray(hex_ids, dtype=np.int64)
@@ -158,10 +157,15 @@ def hex_blocks(
     kind = np.where(disc & (nucleus_hex_type != disc_hex_type) & nucleus, 2, np.where(disc, 1, 0))
     if disc_hex_type == hex_type:
         kind[kind == 1] = 0
-    order = np.argsort(kind, kind="stable")
+    order = hex_ids[np.argsort(kind, kind="stable")]
     names = {0: ("HEXES", hex_type), 1: ("HEXES_DISC", disc_hex_type), 2: ("HEXES_NP", nucleus_hex_type)}
-    counts = np.bincount(kind, minlength=3)
-    return hex_ids[order], [(*names[k], int(counts[k])) for k in range(3) if counts[k]]
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(kind, minlength=3))])
+    blocks = {
+        names[k][0]: (names[k][1], template.hexes[order[bounds[k] : bounds[k + 1]]])
+        for k in range(3)
+        if bounds[k + 1] > bounds[k]
+    }
+    return order, blocks
 
 
 #: node sets by which an exported deck is fixed, in order of preference
@@ -360,15 +364,9 @@ def fe_model(
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
-    hex_order, hex_block_list = hex_blocks(
-        template, np.arange(len(template.hexes)), hex_type, disc_hex_type, nucleus_hex_type
-    )
+    hex_order, blocks = hex_blocks(template, np.arange(len(template.hexes)), hex_type, disc_hex_type, nucleus_hex_type)
     pos_of_hex = np.empty(len(template.hexes), dtype=np.int64)
     pos_of_hex[hex_order] = np.arange(len(hex_order))
-    blocks, start = {}, 0
-    for name, etype, count in hex_block_list:
-        blocks[name] = (etype, template.hexes[hex_order[start : start + count]])
-        start += count
     blocks["SURFACES"] = ("S3", template.tris)
     blocks["LIGAMENTS"] = ("SPRINGA", template.ligaments[lig_keep])
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}

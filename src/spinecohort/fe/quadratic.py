@@ -64,11 +64,11 @@ def quadratic_blocks(
 ) -> tuple[np.ndarray, dict[str, tuple[str, np.ndarray]], np.ndarray | None]:
     """Give every hex block of `blocks` ({name: (type, (E, 8) 0-based)}) whose type is `quadratic_type` its
     midside nodes (shared between those blocks), tied to the 8-node hexes of the other blocks.  Returns
-    the points with the midside nodes appended, the blocks with (E, 20) connectivity and the ties (None:
-    no quadratic block)."""
+    the points with the midside nodes appended, the blocks with (E, 20) connectivity and the (K, 3) ties
+    (none without a quadratic block)."""
     quad = [name for name, (etype, _) in blocks.items() if etype == quadratic_type]
     if not quad:
-        return points_mm, blocks, None
+        return points_mm, blocks, np.zeros((0, 3), dtype=np.int64)
     linear = [conn for etype, conn in blocks.values() if etype != quadratic_type and etype in SOLID_TYPES]
     conn8 = np.concatenate([blocks[name][1] for name in quad])
     midside, hex20, ties = quadratic_hexes(

@@ -190,18 +190,14 @@ def extract_rom_model(
         source = np.concatenate([source, np.full(len(rn.points), -1)])
 
     # disc soft-tissue hexes (annulus, nucleus) last, in their own blocks when their element types differ
-    hex_ids, hex_block_list = hex_blocks(template, hex_ids, hex_type, disc_hex_type, nucleus_hex_type)
-    hexes = new_of[template.hexes[hex_ids]]
+    hex_ids, tpl_blocks = hex_blocks(template, hex_ids, hex_type, disc_hex_type, nucleus_hex_type)
+    blocks = {name: (etype, new_of[conn]) for name, (etype, conn) in tpl_blocks.items()}
+    n_hexes = len(hex_ids)
     lig_conn = new_of[ligs]
-    blocks, start = {}, 0
-    for name, etype, count in hex_block_list:
-        blocks[name] = (etype, hexes[start : start + count])
-        start += count
     # quadratic hexes (the nucleus), conforming to their linear neighbours by midside ties (`spinecohort.fe.quadratic`;
     # docs/moment_check.md: C3D8R discs leak moment, C3D8 locks the nucleus)
     n_before = len(pts)
     pts, blocks, ties = quadratic_blocks(pts, blocks)
-    ties = np.zeros((0, 3), dtype=np.int64) if ties is None else ties
     source = np.concatenate([source, np.full(len(pts) - n_before, -1)])
     elsets: dict[str, np.ndarray] = {}
     pos_of_hex = np.full(len(template.hexes), -1, dtype=np.int64)
@@ -228,11 +224,11 @@ def extract_rom_model(
         rest = np.linalg.norm(pts[lig_conn[:, 1]] - pts[lig_conn[:, 0]], axis=1)
         for i, (g, length) in enumerate(zip(groups, rest)):
             name = f"LIG_{g}_{i + 1}"
-            elsets[name] = np.array([len(hexes) + i])
+            elsets[name] = np.array([n_hexes + i])
             sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[g], length)))
             lig_counts[g] = lig_counts.get(g, 0) + 1
     if fn is not None:
-        first = len(hexes) + len(lig_conn)
+        first = n_hexes + len(lig_conn)
         blocks["FACETS"] = (fn.element_type, facet_conn)
         for i, (_, name) in enumerate(fn.sections):
             elsets[name] = np.array([first + i])
@@ -303,9 +299,9 @@ def extract_rom_model(
         sections=sections,
         heading=heading or f"spinecohort ROM model {top}-{bottom}",
         orientations=[o for o in orientations.values() if o.name in used_orient],
-        midside_ties=ties if len(ties) else None,
+        midside_ties=ties,
     )
-    return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(len(hexes)), source, lig_counts)
+    return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
 
 
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
