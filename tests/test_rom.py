@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, model_to_inp_text, write_inp
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.connections import arch_nodes
-from spinecohort.fe.export import DEFAULT_MATERIALS, materials_from_config, read_deck_points
+from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials, materials_from_config, read_deck_points
 from spinecohort.fe.facets import FacetContact, facet_gaps, vertebra_frame
 from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
 from spinecohort.mesh.template import HexTemplate
@@ -120,9 +120,15 @@ def test_quadratic_hexes_add_one_midside_node_per_edge_and_tie_the_shared_ones()
     text = model_to_inp_text(fe)
     ids = [str(i) for i in [1, *(hex20[0] + 1)]]
     assert f"*ELEMENT, TYPE=C3D20R, ELSET=Q\n{', '.join(ids[:16])},\n{', '.join(ids[16:])}\n" in text
-    assert "*EQUATION\n3\n13, 1, 1., 1, 1, -0.5, 2, 1, -0.5\n3\n13, 2, 1., 1, 2, -0.5, 2, 2, -0.5\n" in text
+    assert "*EQUATION\n3\n13, 1, 1, 1, 1, -0.5, 2, 1, -0.5\n3\n13, 2, 1, 1, 2, -0.5, 2, 2, -0.5\n" in text
     with pytest.raises(ValueError, match="dependent node"):
         model_to_inp_text(dataclasses.replace(fe, midside_ties=np.array([[12, 0, 1], [12, 2, 3]])))
+    # an embedded tie (a fibre spring's end, `spinecohort.fe.fibres`): 9 terms, at most 4 a line (the Abaqus rule)
+    emb = (np.array([[13, *range(8)]]), np.full((1, 8), 0.125))
+    text = model_to_inp_text(dataclasses.replace(fe, embedded_ties=emb))
+    assert "9\n14, 1, 1, 1, 1, -0.125, 2, 1, -0.125, 3, 1, -0.125\n4, 1, -0.125, 5, 1, -0.125, 6, 1, -0.125, " in text
+    with pytest.raises(ValueError, match="dependent node"):  # the midside node 12 may not also be independent
+        model_to_inp_text(dataclasses.replace(fe, embedded_ties=(np.array([[13, 12, *range(7)]]), emb[1])))
 
 
 # --- kinematics and bookkeeping (no solver) ------------------------------------------------------------
@@ -379,7 +385,11 @@ def test_rom_submodel_of_a_functional_unit(template):
     assert len(m.fe.element_blocks["LIGAMENTS"][1]) == 10
     # hex nodes of the layers from L4's inferior to L3's superior endplate + the 8 arch anchor nodes of L3
     # and L4 that the posterior ligaments use (16 ends, shared between none) + the nucleus' midside nodes
-    assert len(m.fe.nodes) == n2 * (2 * res.body_layers + res.disc_layers + 3) + 16 + n_mid
+    # + the annulus fibre springs' end nodes: two springs (families) per annulus hex, two ends each, tied inside it
+    assert len(m.fe.nodes) == n2 * (2 * res.body_layers + res.disc_layers + 3) + 16 + n_mid + 4 * n_af
+    assert m.fe.element_blocks["FIBRES"][0] == "SPRINGA" and len(m.fe.element_blocks["FIBRES"][1]) == 2 * n_af
+    hosts = m.fe.embedded_ties[0][:, 1:].reshape(n_af, 4, 8)  # each hex's four ends hang on its 8 corners
+    assert (np.sort(hosts[:, 0], axis=1) == np.sort(blocks["HEXES_DISC"][1], axis=1)).all()
     assert set(m.rigid_nodes) == {"L3"} and len(m.fixed_nodes) > n2
     assert not np.intersect1d(m.rigid_nodes["L3"], m.fixed_nodes).size
     no_all = extract_rom_model(template, template.nodes, "L3", "L4", include_all=False)
@@ -770,8 +780,9 @@ def test_linear_two_block_unit_gives_equal_and_opposite_rom(tmp_path):
 
 @needs_ccx
 def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path):
-    # cortical/cancellous/CEP (*ELASTIC), NP (*HYPERELASTIC MOONEY-RIVLIN), annulus (ELASTIC_FIBER user
-    # material with a cylindrical *ORIENTATION), 10 SPRINGA tables: the data check assembles every element's
+    # cortical/cancellous/CEP (*ELASTIC), NP (*HYPERELASTIC MOONEY-RIVLIN), annulus (NEO HOOKE ground substance,
+    # its fibres SPRINGA springs tied inside the hexes by 9-term *EQUATIONs), 10 ligament SPRINGA tables (and,
+    # with the fibre law instead, the ELASTIC_FIBER user material in a cylindrical *ORIENTATION): the data check assembles every element's
     # stiffness and fails on any error or unexpected warning.  (ccx 2.20 segfaults on *NO ANALYSIS with
     # rigid bodies, so the data check takes the model data alone; the rigid bodies and the step are solved
     # in test_rom_rules_solve_one_lumbar_unit_nonlinear.)
@@ -786,15 +797,29 @@ def test_every_material_card_of_a_rom_deck_is_accepted_by_ccx(template, tmp_path
         "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_DISC",
         "*ELEMENT, TYPE=C3D20R, ELSET=HEXES_NP",
         "*EQUATION\n3\n",
-        "*USER MATERIAL, CONSTANTS=10",
-        "SYSTEM=CYLINDRICAL",
-        "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",
+        "*EQUATION\n9\n",
+        "*HYPERELASTIC, NEO HOOKE\n0.225, 0.688",
+        "*SOLID SECTION, ELSET=D_L3L4_AF, MATERIAL=AF\n",
+        "*ELEMENT, TYPE=SPRINGA, ELSET=FIBRES",
+        "*SPRING, ELSET=FIB_1, NONLINEAR",
         "*SPRING, ELSET=LIG_ALL_",
         "*RIGID BODY, NSET=RB_L3",
         "*STEP, NLGEOM",
     ):
         assert card in text, card
+    assert "ELASTIC_FIBER" not in text and "*ORIENTATION" not in text
     assert "No analysis was selected" in check_input(deck, tmp_path / "check").log
+    law = extract_rom_model(template, template.nodes, "L3", "L4", materials=FEMaterials(fibre_model="elastic_fiber"))
+    law_text = rom_deck_text(law, "flexion", 7500.0)
+    for card in (
+        "*USER MATERIAL, CONSTANTS=10",
+        "SYSTEM=CYLINDRICAL",
+        "MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L3L4",
+    ):
+        assert card in law_text, card
+    assert "FIBRES" not in law_text
+    deck.write_text(law_text.split("*NODE, NSET=RBNODES")[0])
+    assert "No analysis was selected" in check_input(deck, tmp_path / "check_law").log
     # the residual criterion is 0.5 % of the reference force; run_case's last attempt relaxes only the
     # displacement-correction criterion C_n (0.01 -> 2)
     assert "*CONTROLS, PARAMETERS=FIELD\n0.005, 0.01, 0.01, 500.0," in rom_deck_text(
@@ -922,9 +947,17 @@ def test_a_non_mean_store_model_deck_runs(rom_run, tmp_path):
 def test_exported_deck_has_fibre_annulus_and_per_group_ligaments(tmp_path, template):
     from spinecohort.fe.export import fe_model
 
-    text = write_inp(fe_model(template), tmp_path / "m.inp").read_text()
-    assert text.count("SYSTEM=CYLINDRICAL") == 17  # one per disc, T1-T2 ... L5-S1
-    assert "*SOLID SECTION, ELSET=D_L4L5_AF, MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L4L5" in text
+    fe = fe_model(template)
+    text = write_inp(fe, tmp_path / "m.inp").read_text()
+    # the annulus: its Neo-Hooke ground substance, and two fibre springs per annulus hex of the 17 discs
+    assert "*SOLID SECTION, ELSET=D_L4L5_AF, MATERIAL=AF\n" in text and "*HYPERELASTIC, NEO HOOKE\n" in text
+    n_af = sum(len(v) for k, v in template.elsets.items() if k.startswith("D_") and k.endswith("_AF"))
+    assert len(fe.element_blocks["FIBRES"][1]) == 2 * n_af and len(fe.embedded_ties[0]) == 4 * n_af
+    law = write_inp(
+        fe_model(template, materials=FEMaterials(fibre_model="elastic_fiber")), tmp_path / "l.inp"
+    ).read_text()
+    assert law.count("SYSTEM=CYLINDRICAL") == 17  # one per disc, T1-T2 ... L5-S1
+    assert "*SOLID SECTION, ELSET=D_L4L5_AF, MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L4L5" in law
     assert "*SPRING, ELSET=LIG_ALL, NONLINEAR" in text
     assert (
         "*SPRING, ELSET=LIG_ALL, NONLINEAR"
@@ -1034,6 +1067,22 @@ def test_k1_gradient_gives_each_annulus_ring_its_set_and_material(tmp_path, temp
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     fe = copy.deepcopy(cfg["fe"])
     fe["annulus"]["fibres"].update(k1_inner_mpa=1.17, k1_outer_mpa=1.8)
+    # spring fibres (the default): each hex's springs carry its ring's k1 in their table (within one bin)
+    from spinecohort.fe.export import annulus_fibres
+    from spinecohort.fe.fibres import BIN_RATIO, fibre_force_n, hex_volumes
+
+    springs = annulus_fibres(template, template.nodes, materials_from_config(fe))
+    af = np.concatenate([v for k, v in template.elsets.items() if k.startswith("D_") and k.endswith("_AF")])
+    ring = template.grid.quad_ring[af % len(template.grid.quads)]
+    vol = hex_volumes(template.nodes, template.hexes[af])
+    for s_ in range(0, len(springs.springs), 97):
+        table = np.array(springs.tables[springs.group[s_]])
+        rest = -table[0, 1]
+        k1_read = np.interp(0.05 * rest, table[:, 1], table[:, 0]) / fibre_force_n(1.05, 1.0, 11.0, vol[s_ // 2] / rest)
+        expected = 1.17 if ring[s_ // 2] == template.grid.np_ring + 1 else 1.8
+        assert k1_read == pytest.approx(expected, rel=np.sqrt(BIN_RATIO) - 1 + 1e-3)
+    # the fibre law: per-ring element sets and materials
+    fe["annulus"]["fibres"]["model"] = "elastic_fiber"
     mats = materials_from_config(fe)
     rings = annulus_rings(template)
     assert len(rings) >= 2 and rings[0] == template.grid.np_ring + 1 and rings[-1] == template.grid.shell_ring

@@ -90,6 +90,15 @@ class MooneyRivlin:
 
 
 @dataclass(frozen=True)
+class NeoHooke:
+    """Neo-Hooke hyperelastic material (*HYPERELASTIC, NEO HOOKE): C10 in MPa, D1 in 1/MPa (> 0, see MooneyRivlin)."""
+
+    name: str
+    c10_mpa: float
+    d1_per_mpa: float
+
+
+@dataclass(frozen=True)
 class UserMaterial:
     """*USER MATERIAL placeholder: ccx's built-in laws are selected by name (e.g. `ELASTIC_FIBER...`,
     constants C10, D1, then ax, ay, k1, k2 per fibre family); Abaqus needs a matching UMAT."""
@@ -152,6 +161,19 @@ class FEModel:
     #: (K, 3) 0-based [m, a, b]: node m moves as the mean of nodes a and b (*EQUATION per direction); the
     #: midside nodes of quadratic hexes on an edge of a linear neighbour (`spinecohort.fe.quadratic`)
     midside_ties: np.ndarray | None = None
+    #: ((K, 1 + m) 0-based [d, i_1 .. i_m], (K, m) weights w): node d moves as sum_j w_j u_(i_j) (*EQUATION per
+    #: direction); the annulus fibre springs' end nodes inside their hexes (`spinecohort.fe.fibres`)
+    embedded_ties: tuple[np.ndarray, np.ndarray] | None = None
+
+    def ties(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Every *EQUATION tie as ((K, 1 + m) [dependent, independents], (K, m) weights): midside, then embedded."""
+        out = []
+        if self.midside_ties is not None and len(self.midside_ties):
+            mid = np.asarray(self.midside_ties, dtype=np.int64)
+            out.append((mid, np.full((len(mid), 2), 0.5)))
+        if self.embedded_ties is not None and len(self.embedded_ties[0]):
+            out.append((np.asarray(self.embedded_ties[0], dtype=np.int64), np.asarray(self.embedded_ties[1], float)))
+        return out
 
     @property
     def n_elements(self) -> int:
@@ -214,15 +236,25 @@ def validate_model(model: FEModel) -> None:
         if conn.min() < 0 or conn.max() >= n_nodes:
             raise ValueError(f"element block {name!r}: node indices outside 0..{n_nodes - 1}")
     if model.midside_ties is not None and len(model.midside_ties):
-        ties = np.asarray(model.midside_ties)
-        if ties.ndim != 2 or ties.shape[1] != 3 or not np.issubdtype(ties.dtype, np.integer):
-            raise ValueError(f"midside_ties must be a (K, 3) integer array [m, a, b], got shape {ties.shape}")
-        if ties.min() < 0 or ties.max() >= n_nodes:
-            raise ValueError(f"midside_ties have node indices outside 0..{n_nodes - 1}")
-        dependent = ties[:, 0]
-        if len(np.unique(dependent)) != len(dependent) or np.isin(dependent, ties[:, 1:]).any():
+        mid = np.asarray(model.midside_ties)
+        if mid.ndim != 2 or mid.shape[1] != 3 or not np.issubdtype(mid.dtype, np.integer):
+            raise ValueError(f"midside_ties must be a (K, 3) integer array [m, a, b], got shape {mid.shape}")
+    if model.embedded_ties is not None:
+        ids, w = (np.asarray(a) for a in model.embedded_ties)
+        if ids.ndim != 2 or w.shape != (len(ids), ids.shape[1] - 1) or not np.issubdtype(ids.dtype, np.integer):
+            raise ValueError(
+                f"embedded_ties must be (K, 1 + m) integer ids and (K, m) weights, got {ids.shape}, {w.shape}"
+            )
+    ties = model.ties()
+    if ties:
+        ids = [t[0] for t in ties]
+        if min(t.min() for t in ids) < 0 or max(t.max() for t in ids) >= n_nodes:
+            raise ValueError(f"ties have node indices outside 0..{n_nodes - 1}")
+        dependent = np.concatenate([t[:, 0] for t in ids])
+        independent = np.concatenate([t[:, 1:].ravel() for t in ids])
+        if len(np.unique(dependent)) != len(dependent) or np.isin(dependent, independent).any():
             # ccx removes a dependent DOF from the system: it may appear once, and never as an independent term
-            raise ValueError("midside_ties: a dependent node appears twice or also as an independent node")
+            raise ValueError("ties: a dependent node appears twice or also as an independent node")
     n_el = model.n_elements
     for name, idx in model.node_sets.items():
         _check_name("node set", name)
@@ -328,13 +360,20 @@ def _format_int_rows(rows: np.ndarray) -> str:
     return (line * len(rows)) % tuple(rows.ravel().tolist())
 
 
-def equation_text(ties: np.ndarray) -> str:
-    """*EQUATION cards of midside ties [m, a, b] (0-based): u_m - u_a/2 - u_b/2 = 0 in directions 1-3."""
-    ties = np.asarray(ties, dtype=np.int64) + 1
-    rows = np.repeat(ties, 3, axis=0)
-    dofs = np.tile(np.arange(1, 4), len(ties))
-    table = np.column_stack([rows[:, 0], dofs, rows[:, 1], dofs, rows[:, 2], dofs]).ravel().tolist()
-    return "*EQUATION\n" + ("3\n%d, %d, 1., %d, %d, -0.5, %d, %d, -0.5\n" * len(rows)) % tuple(table)
+def equation_text(nodes: np.ndarray, weights: np.ndarray) -> str:
+    """*EQUATION cards u_d - sum_j w_j u_(i_j) = 0 in directions 1-3 for rows [d, i_1 .. i_m] (0-based) with
+    weights (K, m); at most 4 terms a line (the Abaqus rule, which ccx follows)."""
+    nodes = np.asarray(nodes, dtype=np.int64) + 1
+    k, m = nodes.shape[0], nodes.shape[1] - 1
+    coef = np.column_stack([np.ones(k), -np.asarray(weights, dtype=np.float64)])
+
+    def one(dof: int) -> str:
+        terms = [f"%d, {dof}, %.12g"] * (m + 1)
+        return f"{m + 1}\n" + "\n".join(", ".join(terms[i : i + 4]) for i in range(0, m + 1, 4)) + "\n"
+
+    values = np.stack([nodes.astype(np.float64), coef], axis=-1)  # (K, 1 + m, 2): node, coefficient per term
+    values = np.broadcast_to(values[:, None], (k, 3, m + 1, 2))  # the same terms in each direction
+    return "*EQUATION\n" + ("".join(one(d) for d in (1, 2, 3)) * k) % tuple(values.ravel().tolist())
 
 
 def format_id_list(ids_1based: np.ndarray) -> str:
@@ -367,6 +406,8 @@ def _material_text(mat) -> str:
             f"*HYPERELASTIC, MOONEY-RIVLIN\n{_fmt_float(mat.c10_mpa)}, {_fmt_float(mat.c01_mpa)}, "
             f"{_fmt_float(mat.d1_per_mpa)}\n"
         )
+    elif isinstance(mat, NeoHooke):
+        out += f"*HYPERELASTIC, NEO HOOKE\n{_fmt_float(mat.c10_mpa)}, {_fmt_float(mat.d1_per_mpa)}\n"
     elif isinstance(mat, UserMaterial):
         c = [_fmt_float(x) for x in mat.constants]
         out += f"*USER MATERIAL, CONSTANTS={len(c)}\n"
@@ -427,8 +468,7 @@ def model_to_inp_text(model: FEModel, decimals: int = 6, provenance: str = "") -
         parts += [f"*NSET, NSET={name}\n", format_id_list(np.asarray(idx) + 1)]
     for name, idx in model.element_sets.items():
         parts += [f"*ELSET, ELSET={name}\n", format_id_list(np.asarray(idx) + 1)]
-    if model.midside_ties is not None and len(model.midside_ties):
-        parts.append(equation_text(model.midside_ties))
+    parts += [equation_text(ids, w) for ids, w in model.ties()]
     parts += [_orientation_text(o) for o in model.orientations]
     parts += [_material_text(m) for m in model.materials]
     parts += [_section_text(model, s) for s in model.sections]

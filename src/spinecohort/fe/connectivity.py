@@ -68,9 +68,8 @@ def reachable_nodes(model: FEModel, fixed_nodes: np.ndarray, couplings: Iterable
         if len(sel):  # a star from each element's first node joins all its nodes
             rows.append(np.repeat(sel[:, 0], sel.shape[1] - 1))
             cols.append(sel[:, 1:].ravel())
-    if model.midside_ties is not None and len(model.midside_ties):  # an *EQUATION tie joins its three nodes
-        ties = np.asarray(model.midside_ties, dtype=np.int64)
-        rows.append(np.repeat(ties[:, 0], 2))
+    for ties, _ in model.ties():  # an *EQUATION tie joins its nodes
+        rows.append(np.repeat(ties[:, 0], ties.shape[1] - 1))
         cols.append(ties[:, 1:].ravel())
     for group in couplings:
         group = np.asarray(group, dtype=np.int64)

@@ -8,13 +8,16 @@ below equal config/config.yaml, each with its literature source:
 * cartilage endplates linear elastic (Lu et al. 1996: 24 MPa, 0.4);
 * nucleus Mooney-Rivlin, nearly incompressible (Schmidt et al. 2007, Clin Biomech 22:377: C10 0.12,
   C01 0.03 MPa); D1 > 0 because ccx replaces D1 = 0 by its own default;
-* annulus: Neo-Hooke ground substance with two collagen fibre families at +-30 deg to the transverse plane,
-  CalculiX's built-in Holzapfel-type ``ELASTIC_FIBER`` user material (constants C10, D1, then ax, ay, k1,
-  k2 per family, in a cylindrical *ORIENTATION per disc: 1 radial, 2 circumferential, 3 axial).  Fibres
-  carry load only when stretched (ccx skips a family whose isochoric I4 < 1).  Optionally a radial gradient
-  of the fibre stiffness k1 (fibre content grows inner -> outer, Schmidt et al. 2006): k1 linear over the
-  template's annulus rings (`annulus_ring_k1`), each ring its own element set ``D_<disc>_AF_R<k>`` and material
-  ``ELASTIC_FIBER_AF_R<k>`` in the disc's orientation; off (the default), one uniform k1 and ``D_<disc>_AF``;
+* annulus: Neo-Hooke ground substance (*HYPERELASTIC, NEO HOOKE, material ``AF``) with two collagen fibre
+  families at +-angle to the transverse plane in the circumferential-axial plane of each disc's cylindrical
+  system, as tension-only springs embedded in the annulus hexes (`spinecohort.fe.fibres`, the default): per hex
+  and family one SPRINGA spring (block ``FIBRES``, element sets ``FIB_<k>`` per force table) whose end nodes are
+  tied inside the hex by *EQUATION, with the Holzapfel-Gasser-Ogden fibre force of the hex's volume (k1, k2).
+  Optionally a radial gradient of k1 (fibre content grows inner -> outer, Schmidt et al. 2006), linear over the
+  template's annulus rings (`annulus_ring_k1`).  ``fibre_model="elastic_fiber"`` instead writes CalculiX's
+  built-in ``ELASTIC_FIBER`` user material (constants C10, D1, then ax, ay, k1, k2 per family, in a cylindrical
+  *ORIENTATION per disc: 1 radial, 2 circumferential, 3 axial; with a gradient one set ``D_<disc>_AF_R<k>`` and
+  material ``ELASTIC_FIBER_AF_R<k>`` per ring), which aborts ccx 2.20 at random fibre states (docs/rom.md);
 * ligaments tension-only bilinear springs (SPRINGA, *SPRING NONLINEAR): Young's moduli below/above a
   transition strain and cross-section areas of Goel et al. 1995 (as tabulated in Kim et al. 2013, BMC
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
@@ -34,6 +37,7 @@ from spinecohort.fe.abaqus import (
     FEModel,
     LinearElastic,
     MooneyRivlin,
+    NeoHooke,
     Orientation,
     Section,
     UserMaterial,
@@ -41,6 +45,7 @@ from spinecohort.fe.abaqus import (
     write_vtu,
 )
 from spinecohort.fe.facets import FacetContact
+from spinecohort.fe.fibres import EmbeddedFibres, embedded_fibres
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate
 
 
@@ -72,6 +77,9 @@ class FEMaterials:
     fibre_k1_outer_mpa: float | None = None
     fibre_k2: float = 11.0
     fibre_angle_deg: float = 40.0  # to the transverse plane, +- (two families)
+    # "springs": tension-only springs embedded in the annulus hexes (`spinecohort.fe.fibres`), Neo-Hooke ground
+    # substance; "elastic_fiber": ccx's built-in ELASTIC_FIBER law (aborts at random fibre states, docs/rom.md)
+    fibre_model: str = "springs"
     ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
     include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
     facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
@@ -79,6 +87,13 @@ class FEMaterials:
     def __post_init__(self):
         if (self.fibre_k1_inner_mpa is None) != (self.fibre_k1_outer_mpa is None):
             raise ValueError("the fibre k1 gradient needs both its inner and its outer k1 (or neither)")
+        if self.fibre_model not in FIBRE_MODELS:
+            raise ValueError(f"fibre model {self.fibre_model!r}: one of {FIBRE_MODELS}")
+
+    @property
+    def fibre_springs(self) -> bool:
+        """Whether the annulus fibres are embedded springs (else ccx's ELASTIC_FIBER law)."""
+        return self.fibre_model == "springs"
 
     @property
     def k1_graded(self) -> bool:
@@ -104,6 +119,10 @@ class FEMaterials:
             self.fibre_k2,
         )
 
+
+FIBRE_MODELS = ("springs", "elastic_fiber")
+#: the annulus ground substance's material with spring fibres (Neo-Hooke)
+ANNULUS_GROUND = "AF"
 
 #: bilinear ligaments (E1, E2 MPa, transition strain, area mm^2): moduli of Goel et al. 1995 via Kim et al. 2013;
 #: areas calibrated inside the published range (config/config.yaml, docs/rom.md): ALL and CL Goel's, the others
@@ -201,7 +220,7 @@ def annulus_ring_sets(template: HexTemplate, mats: FEMaterials) -> dict[str, dic
     """With a k1 gradient: each disc's annulus set -> its per-ring sets, ``D_<disc>_AF`` -> {``D_<disc>_AF_R<k>``:
     template hex ids}, rings inner -> outer; {} when k1 is uniform (the decks keep ``D_<disc>_AF``)."""
     rings = annulus_ring_k1(template, mats)
-    if not rings:
+    if not rings or mats.fibre_springs:  # spring fibres carry their ring's k1 themselves
         return {}
     ring_of_hex = template.grid.quad_ring[np.arange(len(template.hexes)) % len(template.grid.quads)]
     out = {}
@@ -236,6 +255,7 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         fibre_k1_outer_mpa=_optional_float(fib.get("k1_outer_mpa")),
         fibre_k2=float(fib["k2"]),
         fibre_angle_deg=float(fib["angle_deg"]),
+        fibre_model=str(fib.get("model", "springs")),
         ligaments=ligs,
         include_all=bool(fe["include_all"]),
         facets=FacetContact.from_config(fe.get("facets")),  # None: a release made before facets were exported
@@ -289,6 +309,8 @@ def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> li
         LinearElastic("CEP", *mats.cep),
         MooneyRivlin("NP", *mats.nucleus),
     ]
+    if mats.fibre_springs:
+        return cards + [NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa)]
     if not mats.k1_graded:
         return cards + [UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
     if template is None:
@@ -312,10 +334,13 @@ def disc_orientations(template: HexTemplate, points: np.ndarray) -> dict[str, Or
     return out
 
 
-def hex_section(name: str, orientations: dict[str, Orientation]) -> Section:
+def hex_section(name: str, orientations: dict[str, Orientation] | None) -> Section:
     """Section of a template hex set (V_<lvl>_CORE/SHELL, D_<disc>_NP/AF/CEP) or of an annulus ring's set
-    (D_<disc>_AF_R<k>, `annulus_ring_sets`: material ELASTIC_FIBER_AF_R<k>, the disc's orientation)."""
+    (D_<disc>_AF_R<k>, `annulus_ring_sets`: material ELASTIC_FIBER_AF_R<k>, the disc's orientation).
+    orientations None: spring fibres, the annulus is its isotropic ground substance (material AF)."""
     parts = name.split("_")
+    if orientations is None:
+        return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(parts[-1], parts[-1]))
     if parts[0] == "D" and len(parts) == 4 and parts[2] == "AF" and parts[3].startswith("R"):
         ring = int(parts[3][1:])
         return Section(elset=name, material=annulus_material(ring), orientation=orientations["_".join(parts[:2])].name)
@@ -323,6 +348,62 @@ def hex_section(name: str, orientations: dict[str, Orientation]) -> Section:
     if tissue == "AF":
         return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
     return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue))
+
+
+def annulus_fibres(
+    template: HexTemplate, points: np.ndarray, mats: FEMaterials, hex_ids: np.ndarray | None = None
+) -> EmbeddedFibres:
+    """The fibre springs (`spinecohort.fe.fibres`) of the template's annulus hexes (only those in `hex_ids`, if
+    given) at `points` (template node order, mm): each disc's cylindrical axis sets the directions, k1 per ring
+    (`annulus_ring_k1`) or uniform.  Hosts are template node ids."""
+    orient = disc_orientations(template, points)
+    ring_k1 = annulus_ring_k1(template, mats)
+    ring_of_hex = template.grid.quad_ring[np.arange(len(template.hexes)) % len(template.grid.quads)]
+    ids, axis_a, axis_b = [], [], []
+    for name, idx in template.elsets.items():
+        if template.elset_kind[name] != "hex" or not name.endswith("_AF"):
+            continue
+        if hex_ids is not None:
+            idx = idx[np.isin(idx, hex_ids)]
+        o = orient[name[:-3]]
+        ids.append(idx)
+        axis_a.append(np.broadcast_to(o.axis_a_mm, (len(idx), 3)))
+        axis_b.append(np.broadcast_to(o.axis_b_mm, (len(idx), 3)))
+    ids = np.concatenate(ids)
+    k1 = np.array([ring_k1.get(int(r), mats.fibre_k1_mpa) for r in ring_of_hex[ids]]) if ring_k1 else mats.fibre_k1_mpa
+    return embedded_fibres(
+        points,
+        template.hexes[ids],
+        np.concatenate(axis_a),
+        np.concatenate(axis_b),
+        k1,
+        mats.fibre_k2,
+        mats.fibre_angle_deg,
+    )
+
+
+def add_fibres(
+    pts: np.ndarray,
+    blocks: dict,
+    elsets: dict,
+    sections: list,
+    fibres: EmbeddedFibres,
+    node_of: np.ndarray | None = None,
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Append the fibre springs to a model being built: their end nodes after `pts`, a last SPRINGA block
+    ``FIBRES`` with one element set and table per force bin (``FIB_<k>``).  node_of: template node id -> model
+    node index (a submodel's renumbering; None: the same).  Returns the points and the ends' embedded ties."""
+    n = len(pts)
+    hosts = fibres.hosts if node_of is None else node_of[fibres.hosts]
+    if (hosts < 0).any():
+        raise ValueError("an annulus fibre's host hex has a node outside the model")
+    first = sum(len(c) for _, c in blocks.values())
+    blocks["FIBRES"] = ("SPRINGA", n + fibres.springs)
+    for g, table in enumerate(fibres.tables):
+        elsets[f"FIB_{g + 1}"] = first + np.flatnonzero(fibres.group == g)
+        sections.append(Section(elset=f"FIB_{g + 1}", spring_force_elongation=table))
+    ties = (np.column_stack([n + np.arange(len(fibres.points)), hosts]), fibres.weights)
+    return np.concatenate([pts, fibres.points]), ties
 
 
 def fe_model(
@@ -345,8 +426,9 @@ def fe_model(
     locks), ``SURFACES`` (S3 skins), ``LIGAMENTS``
     (tension-only SPRINGA), ``CONNECTORS`` (linear SPRINGA, element sets ``CONN_*``; ``CONN_FACET_<lvl>`` hang the
     facet nodes on their vertebra), ``FACETS`` (facet-joint contact struts, SPRINGA, `spinecohort.fe.facets`; element sets
-    ``FACET_*``).  Nodes: the template's (ids 1..N, template order), then the facet nodes (materials.facets None:
-    none), then the quadratic hexes' midside nodes.  Hex elements are therefore numbered bone and endplates first,
+    ``FACET_*``), ``FIBRES`` (the annulus fibre springs, `spinecohort.fe.fibres`; element sets ``FIB_*``; none with
+    ``fibre_model="elastic_fiber"``).  Nodes: the template's (ids 1..N, template order), then the facet nodes
+    (materials.facets None: none), then the quadratic hexes' midside nodes, then the fibre springs' end nodes.  Hex elements are therefore numbered bone and endplates first,
     then annulus, then nucleus, each in template order.  Node sets: the template's plus ``PELVIS`` (where a user fixes the model). disc_hex_type None: the disc
     in ``HEXES`` (template order); connectors False: no ``CONNECTORS``
     (a deck of loose parts, for pictures only).
@@ -361,6 +443,7 @@ def fe_model(
     pts = template.nodes if points is None else np.asarray(points, dtype=np.float64)
     if pts.shape != template.nodes.shape:
         raise ValueError(f"points have shape {pts.shape}, the template has {template.nodes.shape}")
+    template_points = pts
     lig_keep = np.ones(len(template.ligaments), bool)
     if not include_all:
         lig_keep[template.elsets["LIG_ALL"]] = False
@@ -407,6 +490,7 @@ def fe_model(
         for i, (_, name) in enumerate(fn.sections):
             elsets[name] = np.array([first + i])
     orientations = disc_orientations(template, pts)
+    hex_orient = None if mats.fibre_springs else orientations
     sections = []
     for name, kind in template.elset_kind.items():
         if name in ring_sets:
@@ -415,7 +499,7 @@ def fe_model(
         if name not in elsets:
             continue
         if kind == "hex":
-            sections.append(hex_section(name, orientations))
+            sections.append(hex_section(name, hex_orient))
         elif kind == "tri":
             sections.append(Section(elset=name, material="CORTICAL", thickness_mm=mats.shell_thickness_mm))
         else:
@@ -429,6 +513,9 @@ def fe_model(
         pts = np.concatenate([pts, fn.points])
     # quadratic hexes' midside nodes after every other node, tied to their linear neighbours (`fe.quadratic`)
     pts, blocks, ties = quadratic_blocks(pts, blocks)
+    embedded = None
+    if mats.fibre_springs:  # the annulus fibres, last nodes and last elements (`spinecohort.fe.fibres`)
+        pts, embedded = add_fibres(pts, blocks, elsets, sections, annulus_fibres(template, template_points, mats))
     node_sets = dict(template.nsets)
     if "PELVIS" in template.elsets and "PELVIS" not in node_sets:
         node_sets["PELVIS"] = np.unique(template.tris[template.elsets["PELVIS"]])
@@ -440,8 +527,9 @@ def fe_model(
         materials=material_cards(mats, template),
         sections=sections,
         heading=heading,
-        orientations=list(orientations.values()),
+        orientations=[] if mats.fibre_springs else list(orientations.values()),
         midside_ties=ties,
+        embedded_ties=embedded,
     )
 
 

@@ -47,6 +47,8 @@ from spinecohort.fe.connections import (
 from spinecohort.fe.export import (
     DEFAULT_MATERIALS,
     FEMaterials,
+    add_fibres,
+    annulus_fibres,
     annulus_ring_sets,
     disc_orientations,
     hex_blocks,
@@ -214,7 +216,7 @@ def extract_rom_model(
             if len(sub) == 0:
                 continue
             elsets[set_name] = np.sort(sub)
-            sec = hex_section(set_name, orientations)
+            sec = hex_section(set_name, None if mats.fibre_springs else orientations)
             sections.append(sec)
             if sec.orientation:
                 used_orient.add(sec.orientation)
@@ -290,6 +292,11 @@ def extract_rom_model(
             elsets[f"{g}_{i + 1}"] = np.array([first + i])
             sections.append(Section(elset=f"{g}_{i + 1}", spring_force_elongation=linear_spring_table(k)))
         lig_counts["RIB_HEAD"] = len(rn.points)
+    embedded = None
+    if mats.fibre_springs:  # the annulus fibres, as in the exported decks (`spinecohort.fe.fibres`)
+        fib = annulus_fibres(template, points, mats, hex_ids)
+        pts, embedded = add_fibres(pts, blocks, elsets, sections, fib, new_of)
+        source = np.concatenate([source, np.full(len(fib.points), -1)])
     fe = FEModel(
         nodes=pts,
         element_blocks=blocks,
@@ -300,6 +307,7 @@ def extract_rom_model(
         heading=heading or f"spinecohort ROM model {top}-{bottom}",
         orientations=[o for o in orientations.values() if o.name in used_orient],
         midside_ties=ties,
+        embedded_ties=embedded,
     )
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
 

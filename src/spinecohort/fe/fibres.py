@@ -1,0 +1,174 @@
+"""Annulus collagen fibres as tension-only springs embedded in the annulus hexes (the default of every deck).
+
+Why (docs/rom.md "Annulus fibres as springs"): ccx 2.20's built-in fibre law ``umat_elastic_fiber`` tests
+``xk2 * v4br**2 > 227`` before it assigns ``xk2``, so it aborts runs at random fibre states ("fiber extension is too
+large", exit 201, not an increment cutback): with the tied C3D20R nucleus, three thoracic unit cases stopped at
+66.5-96.5 % of the load in every retry.  Cable or spring fibres are the classic alternative (Shirazi-Adl et al. 1986;
+Goel et al. 1995 used tension-only cable elements), and SPRINGA springs are what the ligaments already are.
+
+The same energy as the continuum law: per annulus hex and per family (+-angle to the transverse plane, in the
+circumferential-axial plane of the disc's cylindrical system), one spring of rest length L through the hex centroid
+along the fibre direction.  Its end nodes are new and move with the hex by trilinear interpolation (``*EQUATION``
+u_end = sum_i N_i(xi) u_i over the 8 corners, `FEModel.embedded_ties`), so the spring's stretch is the hex's
+fibre stretch lambda (exactly so under a homogeneous deformation).  With the Holzapfel-Gasser-Ogden fibre energy
+per unit volume Psi(lambda) = k1 / (2 k2) (exp(k2 (lambda^2 - 1)^2) - 1) and the hex's reference volume V, the
+spring force F = (V / L) dPsi/dlambda = (V / L) 2 k1 lambda (lambda^2 - 1) exp(k2 (lambda^2 - 1)^2) stores
+V * Psi: the fibre energy ccx's ELASTIC_FIBER law stores in that hex, with the total stretch instead of the
+isochoric one.  Zero force for lambda <= 1 (tension only in an NLGEOM step).  The ground substance stays the
+same Neo-Hooke (C10, D1), as ccx's native ``*HYPERELASTIC, NEO HOOKE``.
+
+A SPRINGA table is force vs elongation, so it depends on V / L: the springs share one table per bin of
+k1 * V / L (bins `BIN_RATIO` wide, <= 1 % from each hex's own value), which keeps a deck to tens of tables instead
+of one per hex.  Units: mm, N, MPa.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: natural coordinates of the 8 corners of a C3D8 hex (Abaqus/ccx node order)
+HEX8_NATURAL = np.array(
+    [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
+    dtype=np.float64,
+)
+#: fibre springs' rest length (mm): short enough to lie inside every annulus hex of the template (checked)
+FIBRE_LENGTH_MM = 1.0
+#: the segment ends stay within this natural coordinate of the hex (its inner half)
+MAX_NATURAL = 0.5
+#: at most this many halvings of FIBRE_LENGTH_MM (1/8 mm)
+MAX_HALVINGS = 3
+#: width of the force-scale bins that share one spring table (ratio of neighbouring bins)
+BIN_RATIO = 1.02
+#: fibre strains of the force tables: dense where the annulus works (< 15 %), then to 30 %; ccx holds the
+#: force constant beyond the last row
+TABLE_STRAINS = np.concatenate([np.linspace(0.0, 0.15, 31), [0.2, 0.25, 0.3]])
+
+
+def trilinear_weights(xi: np.ndarray) -> np.ndarray:
+    """(..., 8) shape functions of a C3D8 hex at natural coordinates `xi` (..., 3)."""
+    xi = np.asarray(xi, dtype=np.float64)
+    return np.prod(1.0 + xi[..., None, :] * HEX8_NATURAL, axis=-1) / 8.0
+
+
+def fibre_directions(centroids_mm: np.ndarray, axis_a_mm: np.ndarray, axis_b_mm: np.ndarray, angle_deg: float):
+    """(E, 2, 3) unit directions of the two fibre families of each hex: cos(angle) e_circ +- sin(angle) e_axial,
+    with e_axial the disc axis a -> b (per hex, (E, 3) each) and e_circ = e_axial x e_radial at the centroid."""
+    c = np.asarray(centroids_mm, dtype=np.float64)
+    a, b = np.asarray(axis_a_mm, dtype=np.float64), np.asarray(axis_b_mm, dtype=np.float64)
+    ez = (b - a) / np.linalg.norm(b - a, axis=-1, keepdims=True)
+    r = (c - a) - np.sum((c - a) * ez, axis=-1, keepdims=True) * ez
+    et = np.cross(ez, r / np.linalg.norm(r, axis=-1, keepdims=True))
+    t = np.radians(angle_deg)
+    return np.stack([np.cos(t) * et + np.sin(t) * ez, np.cos(t) * et - np.sin(t) * ez], axis=1)
+
+
+def embedded_segments(
+    points_mm: np.ndarray, hexes8: np.ndarray, directions: np.ndarray, length_mm: float = FIBRE_LENGTH_MM
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """End points of one segment per hex and direction, centred on the hex's centre (xi = 0) along the
+    direction.  Its length is `length_mm` halved until both ends lie within the inner half of the hex
+    (|xi| <= `MAX_NATURAL`; a thin outer lamella or a skewed hex needs 1/2 or 1/4 of it).  Returns
+    ``(ends_mm (E, F, 2, 3), weights (E, F, 2, 8), halvings (E, F))``: each end lies where the hex's trilinear
+    map puts its natural coordinates, so ``ends = weights @ corners`` exactly (the tie is exact in the reference
+    state), and the segment's length is length_mm / 2**halvings to first order in the hex's distortion."""
+    corners = np.asarray(points_mm, dtype=np.float64)[np.asarray(hexes8, dtype=np.int64)]  # (E, 8, 3)
+    jac = np.einsum("eki,kj->eij", corners, HEX8_NATURAL) / 8.0  # dx/dxi at xi = 0, (E, 3, 3)
+    half = 0.5 * length_mm * np.asarray(directions, dtype=np.float64)  # (E, F, 3)
+    dxi = np.linalg.solve(jac[:, None], half[..., None])[..., 0]  # (E, F, 3)
+    extent = np.abs(dxi).max(axis=-1)
+    halvings = np.maximum(0, np.ceil(np.log2(extent / MAX_NATURAL))).astype(np.int64)
+    if halvings.max() > MAX_HALVINGS:
+        worst = int(np.argmax(extent.max(axis=1)))
+        raise ValueError(
+            f"annulus hex {worst} is too thin or distorted for a fibre spring: a {length_mm} mm segment reaches "
+            f"natural coordinate {extent.max():.1f}"
+        )
+    dxi = dxi / 2.0 ** halvings[..., None]
+    xi = np.stack([-dxi, dxi], axis=2)  # (E, F, 2, 3)
+    weights = trilinear_weights(xi)
+    ends = np.einsum("efsk,ekj->efsj", weights, corners)
+    return ends, weights, halvings
+
+
+def hex_volumes(points_mm: np.ndarray, hexes8: np.ndarray) -> np.ndarray:
+    """(E,) reference volumes (mm^3) of C3D8 hexes by 2x2x2 Gauss quadrature (exact for the trilinear map)."""
+    corners = np.asarray(points_mm, dtype=np.float64)[np.asarray(hexes8, dtype=np.int64)]
+    g = HEX8_NATURAL / np.sqrt(3.0)
+    dn = HEX8_NATURAL[None] * np.prod(1.0 + g[:, None, :] * HEX8_NATURAL[None], axis=-1)[..., None] / 8.0
+    dn = dn / (1.0 + g[:, None, :] * HEX8_NATURAL[None])  # d N_k / d xi_j at each Gauss point, (8g, 8k, 3)
+    jac = np.einsum("eki,gkj->egij", corners, dn)
+    return np.linalg.det(jac).sum(axis=1)
+
+
+def fibre_force_n(stretch: np.ndarray, k1_mpa: float, k2: float, force_scale_mm2: float) -> np.ndarray:
+    """Spring force (N) at fibre stretch lambda: force_scale (V / L, mm^2) x dPsi/dlambda of the HGO fibre energy
+    (module docstring); zero for lambda <= 1."""
+    lam = np.asarray(stretch, dtype=np.float64)
+    e4 = lam**2 - 1.0
+    f = force_scale_mm2 * 2.0 * k1_mpa * lam * e4 * np.exp(k2 * e4**2)
+    return np.where(lam > 1.0, f, 0.0)
+
+
+def fibre_table(k1_mpa: float, k2: float, force_scale_mm2: float, length_mm: float) -> tuple[tuple[float, float], ...]:
+    """(force N, elongation mm) rows of a fibre spring of rest length `length_mm`: zero force in compression,
+    `fibre_force_n` at `TABLE_STRAINS`."""
+    force = fibre_force_n(1.0 + TABLE_STRAINS, k1_mpa, k2, force_scale_mm2)
+    rows = [(0.0, -float(length_mm))] + [(float(f), float(e * length_mm)) for f, e in zip(force, TABLE_STRAINS)]
+    return tuple(rows)
+
+
+@dataclass(frozen=True)
+class EmbeddedFibres:
+    """The fibre springs of a set of annulus hexes, ready to append to a model.
+
+    points: (P, 3) end nodes (mm), to be appended after the model's nodes (their indices are then n + 0..P-1).
+    springs: (S, 2) indices into `points`.  hosts: (P, 8) model node ids of each end's hex corners; weights:
+    (P, 8) their trilinear weights.  tables: one force-elongation table per group; group: (S,) the table of each
+    spring."""
+
+    points: np.ndarray
+    springs: np.ndarray
+    hosts: np.ndarray
+    weights: np.ndarray
+    tables: list
+    group: np.ndarray
+
+
+def embedded_fibres(
+    points_mm: np.ndarray,
+    hexes8: np.ndarray,
+    axis_a_mm: np.ndarray,
+    axis_b_mm: np.ndarray,
+    k1_mpa: np.ndarray,
+    k2: float,
+    angle_deg: float,
+    length_mm: float = FIBRE_LENGTH_MM,
+) -> EmbeddedFibres:
+    """Two fibre springs per annulus hex (`hexes8` (E, 8), node ids into `points_mm`): the hex's disc axis
+    a -> b (E, 3 each, mm) sets the families' directions, `k1_mpa` (E,) their stiffness (a radial gradient
+    per ring, or uniform); see the module docstring."""
+    hexes8 = np.asarray(hexes8, dtype=np.int64)
+    n_hex = len(hexes8)
+    pts = np.asarray(points_mm, dtype=np.float64)
+    centroids = pts[hexes8].mean(axis=1)
+    dirs = fibre_directions(centroids, axis_a_mm, axis_b_mm, angle_deg)
+    ends, weights, halvings = embedded_segments(pts, hexes8, dirs, length_mm)
+    rest = length_mm / 2.0**halvings  # (E, 2) nominal rest lengths
+    scale = np.broadcast_to(np.asarray(k1_mpa, dtype=np.float64), (n_hex,))[:, None] * hex_volumes(pts, hexes8)[:, None]
+    scale = scale / rest  # k1 V / L per spring (MPa mm^2): the force per unit dPsi/dlambda / k1
+    bins = np.round(np.log(scale.ravel()) / np.log(BIN_RATIO)).astype(np.int64)
+    key = np.column_stack([halvings.ravel(), bins])
+    uniq, group = np.unique(key, axis=0, return_inverse=True)
+    tables = [fibre_table(1.0, k2, float(BIN_RATIO**b), length_mm / 2.0**h) for h, b in uniq]
+    n_springs = 2 * n_hex
+    springs = np.arange(2 * n_springs).reshape(n_springs, 2)
+    return EmbeddedFibres(
+        points=ends.reshape(-1, 3),
+        springs=springs,
+        hosts=np.repeat(hexes8, 4, axis=0),
+        weights=weights.reshape(-1, 8),
+        tables=tables,
+        group=group.reshape(-1),
+    )
