@@ -1,6 +1,7 @@
 """Tests of spinecohort.fe.connections and spinecohort.fe.connectivity: every deck the project exports is one
 mechanical body (each posterior arch on its vertebral body, the sacrum on the S1 plate, the pelvis on the
-sacrum, the femoral heads on the pelvis, the annulus C3D8R, the nucleus C3D20R tied to its neighbours), checked by graph reachability from the fixed
+sacrum, the femoral heads on the pelvis, the annulus C3D8R with its fibre springs tied inside it, the nucleus C3D20R tied to
+its neighbours), checked by graph reachability from the fixed
 pelvis; a part held only by tension-only springs is reported by name."""
 
 import shutil

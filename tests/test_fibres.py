@@ -20,9 +20,9 @@ from spinecohort.fe.fibres import (
     fibre_directions,
     fibre_force_n,
     fibre_table,
-    hex_volumes,
     trilinear_weights,
 )
+from spinecohort.mesh.quality import hex_volumes
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed")
 

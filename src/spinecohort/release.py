@@ -402,10 +402,11 @@ def _technical_info(counts: dict) -> str:
         f"split into {counts['n_parts']} tar parts; {counts['n_patients']} patient "
         f"surfaces; {counts['n_personalized']} personalized models. Packaged as a "
         f"BagIt bag (RFC 8493); see data/README.md. Decks: one connected FE body each (connector springs join "
-        f"arches, sacrum, pelvis and femoral heads; facet joints as compression-only contact springs; annulus C3D8R, "
-        f"nucleus C3D20R tied to its neighbours by *EQUATION); fix node set "
-        f"PELVIS and load the top. Version 0.x renumbers elements (hexahedra of bone and endplates first, then annulus and nucleus) "
-        f"and appends the facet-joint nodes, then the nucleus' midside nodes, after the template's nodes 1..N."
+        f"arches, sacrum, pelvis and femoral heads; facet joints as compression-only contact springs; annulus C3D8R "
+        f"with its collagen fibres as tension-only springs tied inside each hexahedron, nucleus C3D20R tied to its "
+        f"neighbours by *EQUATION); fix node set PELVIS and load the top. Version 0.x renumbers elements (hexahedra "
+        f"of bone and endplates first, then annulus and nucleus; the fibre springs last) and appends the facet-joint "
+        f"nodes, the nucleus' midside nodes and the fibre springs' end nodes after the template's nodes 1..N."
     )
 
 

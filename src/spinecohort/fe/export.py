@@ -76,7 +76,7 @@ class FEMaterials:
     fibre_k1_inner_mpa: float | None = None
     fibre_k1_outer_mpa: float | None = None
     fibre_k2: float = 11.0
-    fibre_angle_deg: float = 40.0  # to the transverse plane, +- (two families)
+    fibre_angle_deg: float = 35.0  # to the transverse plane, +- (two families)
     # "springs": tension-only springs embedded in the annulus hexes (`spinecohort.fe.fibres`), Neo-Hooke ground
     # substance; "elastic_fiber": ccx's built-in ELASTIC_FIBER law (aborts at random fibre states, docs/rom.md)
     fibre_model: str = "springs"

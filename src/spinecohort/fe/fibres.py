@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from spinecohort.mesh.quality import hex_volumes
+
 #: natural coordinates of the 8 corners of a C3D8 hex (Abaqus/ccx node order)
 HEX8_NATURAL = np.array(
     [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
@@ -90,16 +92,6 @@ def embedded_segments(
     weights = trilinear_weights(xi)
     ends = np.einsum("efsk,ekj->efsj", weights, corners)
     return ends, weights, halvings
-
-
-def hex_volumes(points_mm: np.ndarray, hexes8: np.ndarray) -> np.ndarray:
-    """(E,) reference volumes (mm^3) of C3D8 hexes by 2x2x2 Gauss quadrature (exact for the trilinear map)."""
-    corners = np.asarray(points_mm, dtype=np.float64)[np.asarray(hexes8, dtype=np.int64)]
-    g = HEX8_NATURAL / np.sqrt(3.0)
-    dn = HEX8_NATURAL[None] * np.prod(1.0 + g[:, None, :] * HEX8_NATURAL[None], axis=-1)[..., None] / 8.0
-    dn = dn / (1.0 + g[:, None, :] * HEX8_NATURAL[None])  # d N_k / d xi_j at each Gauss point, (8g, 8k, 3)
-    jac = np.einsum("eki,gkj->egij", corners, dn)
-    return np.linalg.det(jac).sum(axis=1)
 
 
 def fibre_force_n(stretch: np.ndarray, k1_mpa: float, k2: float, force_scale_mm2: float) -> np.ndarray:
