@@ -86,9 +86,10 @@ def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(t
     etype, gaps = fe.element_blocks["FACETS"]
     # 16 segments x 2 sides, a joint gap and an extension stop each, as 20 mm compression-only struts; the new
     # nodes come after the template's
-    # (then the quadratic nucleus' midside nodes, one per distinct nucleus edge)
+    # (then the quadratic nucleus' midside nodes, one per distinct nucleus edge, then the fibre springs' ends)
     n_mid = len(quadratic_hexes(template.nodes, fe.element_blocks["HEXES_NP"][1][:, :8])[0])
-    assert etype == "SPRINGA" and len(gaps) == 64 and len(fe.nodes) == n + 128 + n_mid and gaps.min() >= n
+    n_fib = 2 * len(fe.element_blocks["FIBRES"][1])
+    assert etype == "SPRINGA" and len(gaps) == 64 and len(fe.nodes) == n + 128 + n_mid + n_fib and gaps.min() >= n
     assert gaps.max() < n + 128
     np.testing.assert_array_equal(fe.nodes[:n], template.nodes)
     # each strut runs from its lower node to its upper one along the contact direction, 20 mm long
@@ -109,7 +110,7 @@ def test_the_exported_deck_carries_the_facet_joints_the_rom_analysis_validates(t
     assert [tuple(s.gap[1]) for s in gap.sections if s.gap is not None] == [tuple(d) for d in direction]
     # and the deck without facets has none
     bare = fe_model(template, materials=replace(DEFAULT_MATERIALS, facets=None))
-    assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n + n_mid
+    assert "FACETS" not in bare.element_blocks and len(bare.nodes) == n + n_mid + n_fib
 
 
 def test_exported_disc_is_c3d8r_annulus_and_c3d20r_nucleus_tied_to_its_neighbours(template):

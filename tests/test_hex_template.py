@@ -92,18 +92,20 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
     for c in mesh.cells:
         counts[c.type] = counts.get(c.type, 0) + len(c.data)
     # hexes in three blocks (C3D8; annulus C3D8R; nucleus C3D20R, read back as meshio's hexahedron20), lines =
-    # ligaments + connectors + facet gaps (GAPUNI)
+    # ligaments + connectors + facet struts + annulus fibre springs (two per annulus hex)
     n_conn = len(fe.element_blocks["CONNECTORS"][1])
     n_gaps = len(fe.element_blocks["FACETS"][1])
     n_disc = len(fe.element_blocks["HEXES_NP"][1])
+    n_af = len(fe.element_blocks["HEXES_DISC"][1])
     assert counts == {
         "hexahedron": len(template.hexes) - n_disc,
         "hexahedron20": n_disc,
         "triangle": len(template.tris),
-        "line": len(template.ligaments) + n_conn + n_gaps,
+        "line": len(template.ligaments) + n_conn + n_gaps + 2 * n_af,
     }
-    # the template's nodes, then two coincident nodes per gap, then the nucleus' midside nodes
-    n_mid = len(fe.nodes) - template.n_nodes - 2 * n_gaps
+    # the template's nodes, then two nodes per facet strut, then the nucleus' midside nodes, then 4 fibre ends per
+    # annulus hex
+    n_mid = len(fe.nodes) - template.n_nodes - 2 * n_gaps - 4 * n_af
     assert len(mesh.points) == len(fe.nodes) and n_mid > 0
     np.testing.assert_allclose(mesh.points, fe.nodes, atol=1e-6)
     for name, idx in template.nsets.items():

@@ -35,7 +35,7 @@ HEX8_NATURAL = np.array(
     [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
     dtype=np.float64,
 )
-#: fibre springs' rest length (mm): short enough to lie inside every annulus hex of the template (checked)
+#: fibre springs' rest length (mm), halved in a hex too thin for it (`embedded_segments`)
 FIBRE_LENGTH_MM = 1.0
 #: the segment ends stay within this natural coordinate of the hex (its inner half)
 MAX_NATURAL = 0.5
@@ -149,7 +149,7 @@ def embedded_fibres(
     ends, weights, halvings = embedded_segments(pts, hexes8, dirs, length_mm)
     rest = length_mm / 2.0**halvings  # (E, 2) nominal rest lengths
     scale = np.broadcast_to(np.asarray(k1_mpa, dtype=np.float64), (n_hex,))[:, None] * hex_volumes(pts, hexes8)[:, None]
-    scale = scale / rest  # k1 V / L per spring (MPa mm^2): the force per unit dPsi/dlambda / k1
+    scale = scale / rest  # k1 V / L per spring (N): its table is this times 2 lambda (lambda^2 - 1) exp(k2 (...)^2)
     bins = np.round(np.log(scale.ravel()) / np.log(BIN_RATIO)).astype(np.int64)
     key = np.column_stack([halvings.ravel(), bins])
     uniq, group = np.unique(key, axis=0, return_inverse=True)
