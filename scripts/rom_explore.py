@@ -9,7 +9,7 @@ Overrides are dotted config paths with YAML values (``+a.b.c=value`` adds an opt
 e.g. ``+fe.annulus.fibres.k1_inner_mpa=1.17 +fe.annulus.fibres.k1_outer_mpa=1.8``); the deck is ``<results>/models/<model>.inp`` (make it
 with ``snakemake -j2 results/models/<model>.inp``).  Prints the validation rows of the solved extractions
 and the lumbar orderings; writes OUT/rom.csv (every ccx deck and log stays under OUT).  A unit case takes
-~2-3 s on the default mean, a lumbar-model case 130-180 s.
+~4 s on the default mean, a lumbar-model case 160-400 s (session 12, spring fibres).
 """
 
 from __future__ import annotations
