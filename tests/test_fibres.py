@@ -151,5 +151,5 @@ def test_one_hex_with_spring_fibres_stretches_as_with_ccx_fibre_law(tmp_path):
         stretch[kind] = 1.0 + u[:, 0].mean() / side
     # ground substance alone (Neo-Hooke, mu 0.45 MPa, sigma 6 N / 16 mm^2 = 0.375 MPa): lambda ~ 1.3; the fibres
     # hold it to a few per cent.  Same stretch within 0.3 % of the length (the bins <= 1 % of the fibre force)
-    assert 1.01 < stretch["law"] < 1.15
+    assert 0.01 < stretch["law"] - 1.0 < 0.15  # stretched, far less than the ground substance alone (~0.3)
     assert stretch["springs"] == pytest.approx(stretch["law"], abs=0.003)

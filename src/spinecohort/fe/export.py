@@ -339,14 +339,15 @@ def hex_section(name: str, orientations: dict[str, Orientation] | None) -> Secti
     (D_<disc>_AF_R<k>, `annulus_ring_sets`: material ELASTIC_FIBER_AF_R<k>, the disc's orientation).
     orientations None: spring fibres, the annulus is its isotropic ground substance (material AF)."""
     parts = name.split("_")
-    if orientations is None:
-        return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(parts[-1], parts[-1]))
-    if parts[0] == "D" and len(parts) == 4 and parts[2] == "AF" and parts[3].startswith("R"):
-        ring = int(parts[3][1:])
-        return Section(elset=name, material=annulus_material(ring), orientation=orientations["_".join(parts[:2])].name)
     tissue = parts[-1]
-    if tissue == "AF":
-        return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
+    if orientations is not None:  # ccx's fibre law: the annulus material carries the fibres in the disc's system
+        if parts[0] == "D" and len(parts) == 4 and parts[2] == "AF" and parts[3].startswith("R"):
+            ring = int(parts[3][1:])
+            orient = orientations["_".join(parts[:2])].name
+            return Section(elset=name, material=annulus_material(ring), orientation=orient)
+        if tissue == "AF":
+            return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
+    # AF with spring fibres: its ground substance, material ANNULUS_GROUND ("AF")
     return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue))
 
 
@@ -370,7 +371,9 @@ def annulus_fibres(
         axis_a.append(np.broadcast_to(o.axis_a_mm, (len(idx), 3)))
         axis_b.append(np.broadcast_to(o.axis_b_mm, (len(idx), 3)))
     ids = np.concatenate(ids)
-    k1 = np.array([ring_k1.get(int(r), mats.fibre_k1_mpa) for r in ring_of_hex[ids]]) if ring_k1 else mats.fibre_k1_mpa
+    k1_of_ring = np.full(template.grid.shell_ring + 1, mats.fibre_k1_mpa)
+    k1_of_ring[list(ring_k1)] = list(ring_k1.values())  # {} (uniform k1): unchanged
+    k1 = k1_of_ring[ring_of_hex[ids]]
     return embedded_fibres(
         points,
         template.hexes[ids],
