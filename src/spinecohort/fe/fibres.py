@@ -1,6 +1,6 @@
 """Annulus collagen fibres as tension-only springs embedded in the annulus hexes (the default of every deck).
 
-Why (docs/rom.md "Annulus fibres as springs"): ccx 2.20's built-in fibre law ``umat_elastic_fiber`` tests
+Why (docs/rom.md "Annulus fibres as embedded springs"): ccx 2.20's built-in fibre law ``umat_elastic_fiber`` tests
 ``xk2 * v4br**2 > 227`` before it assigns ``xk2``, so it aborts runs at random fibre states ("fiber extension is too
 large", exit 201, not an increment cutback): with the tied C3D20R nucleus, three thoracic unit cases stopped at
 66.5-96.5 % of the load in every retry.  Cable or spring fibres are the classic alternative (Shirazi-Adl et al. 1986;
@@ -18,8 +18,8 @@ isochoric one.  Zero force for lambda <= 1 (tension only in an NLGEOM step).  Th
 same Neo-Hooke (C10, D1), as ccx's native ``*HYPERELASTIC, NEO HOOKE``.
 
 A SPRINGA table is force vs elongation, so it depends on V / L: the springs share one table per bin of
-k1 * V / L (bins `BIN_RATIO` wide, <= 1 % from each hex's own value), which keeps a deck to tens of tables instead
-of one per hex.  Units: mm, N, MPa.
+k1 * V / L and rest length (bins `BIN_RATIO` wide, <= 1 % from each hex's own value): 385 tables for the 3,264
+springs of the whole-spine deck instead of one per spring.  Units: mm, N, MPa.
 """
 
 from __future__ import annotations
@@ -28,13 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spinecohort.mesh.quality import hex_volumes
+from spinecohort.mesh.quality import HEX_CORNER_UVW, hex_volumes
 
-#: natural coordinates of the 8 corners of a C3D8 hex (Abaqus/ccx node order)
-HEX8_NATURAL = np.array(
-    [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
-    dtype=np.float64,
-)
+#: natural coordinates (-1..1) of the 8 corners of a C3D8 hex, Abaqus/ccx node order (quality's 0..1 corners)
+HEX8_NATURAL = 2.0 * HEX_CORNER_UVW - 1.0
 #: fibre springs' rest length (mm), halved in a hex too thin for it (`embedded_segments`)
 FIBRE_LENGTH_MM = 1.0
 #: the segment ends stay within this natural coordinate of the hex (its inner half)
