@@ -27,6 +27,42 @@ def test_ogrid_counts_and_nucleus_fraction():
     assert (signed > 0).all()
 
 
+def test_cep_covers_the_ring_boundary_nearest_its_diameter_share():
+    """The default (1.0) keeps the whole CEP layer cartilage. Wang et al. 2012's ~70 % of the diameter is ~49 % of
+    the area: the coarse O-grid's ring boundaries enclose 40 % (the nucleus), ~88 % and 100 %, so 0.70 gives the
+    nucleus' footprint; the fine grid (9 rings) resolves the 49 % more closely."""
+    import dataclasses
+
+    def cep_area(res):
+        g = ogrid(res)
+        p = g.nodes[g.quads]
+        area = 0.5 * np.abs(np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1))
+        return g, area[g.quad_ring <= g.cep_ring].sum() / area.sum()
+
+    g, share = cep_area(TEMPLATE_RESOLUTIONS["coarse"])
+    assert g.cep_ring == g.shell_ring and share == pytest.approx(1.0)
+    g, share = cep_area(dataclasses.replace(TEMPLATE_RESOLUTIONS["coarse"], cep_diameter_fraction=0.70))
+    assert g.cep_ring == g.np_ring and share == pytest.approx(0.40, abs=0.005)
+    _, share = cep_area(dataclasses.replace(TEMPLATE_RESOLUTIONS["fine"], cep_diameter_fraction=0.70))
+    assert abs(share - 0.49) < abs(0.40 - 0.49)
+
+
+def test_a_partial_cep_turns_the_rim_of_its_layers_into_annulus(small_cohort):
+    """cep_diameter_fraction 0.70 at coarse: per disc the two CEP layers keep the 32 nucleus quads, their 32 outer
+    quads join the annulus (3 x 32 + 2 x 32), and every hex stays in exactly one tissue set."""
+    import dataclasses
+
+    from spinecohort.mesh.template import build_template
+
+    res = dataclasses.replace(TEMPLATE_RESOLUTIONS["coarse"], cep_diameter_fraction=0.70)
+    t = build_template(build_ssm_mean(small_cohort), small_cohort.faces, small_cohort.landmarks, res)
+    for up, lo in DISCS:
+        name = f"D_{up}{lo}"
+        assert len(t.elsets[f"{name}_CEP"]) == 2 * 32 and len(t.elsets[f"{name}_AF"]) == 5 * 32
+    hex_sets = np.concatenate([v for k, v in t.elsets.items() if t.elset_kind[k] == "hex"])
+    assert np.array_equal(np.sort(hex_sets), np.arange(len(t.hexes)))
+
+
 def test_template_counts_and_sets(template, small_cohort):
     t = template
     # 154 node layers (S1 plate + 17 x (4 disc + 5 body)) of 73 nodes; 153 element layers of 64 hexes
@@ -60,9 +96,12 @@ def test_vertebrae_and_discs_share_their_interface_nodes(template):
         # the shell ring's hexes touch the two outermost node rings of the endplate: 2 x 16 nodes
         assert np.isin(t.nsets[f"EP_INF_{lv}"], np.unique(t.hexes[t.elsets[f"V_{lv}_SHELL"]])).sum() == 32
         below = "S1" if lv == "L5" else LEVELS[LEVELS.index(lv) + 1]
-        cep = np.unique(t.hexes[t.elsets[f"D_{lv}{below}_CEP"]])
-        # the disc's top CEP uses the vertebra's inferior endplate nodes: a conforming mesh, no tie
-        assert np.isin(t.nsets[f"EP_INF_{lv}"], cep).all()
+        disc = f"D_{lv}{below}"
+        cep = np.unique(t.hexes[t.elsets[f"{disc}_CEP"]])
+        top_layer = np.unique(t.hexes[np.concatenate([t.elsets[f"{disc}_CEP"], t.elsets[f"{disc}_AF"]])])
+        # the disc's top layer (CEP in the centre, annulus at the rim) uses the vertebra's inferior endplate
+        # nodes: a conforming mesh, no tie
+        assert np.isin(t.nsets[f"EP_INF_{lv}"], top_layer).all()
         assert np.isin(body_nodes, cep).any()
 
 

@@ -18,6 +18,7 @@ rule hex_template:
     threads: 1
     params:
         resolution=config["template"]["resolution"],
+        cep_diameter_fraction=config["template"].get("cep_diameter_fraction", 1.0),
     script:
         "../scripts/hex_template.py"
 

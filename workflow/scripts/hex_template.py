@@ -1,4 +1,6 @@
 # Adapter: build the hex template on the SSM mean (placed by the mean's endplate frames).
+import dataclasses
+
 from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.fe.abaqus import write_vtu
 from spinecohort.fe.export import fe_model
@@ -9,9 +11,11 @@ from spinecohort.ssm.model import SSM
 with to_file(snakemake.log[0]) as log:
     ssm = SSM.load(snakemake.input.ssm)
     cohort = load_cohort_npz(snakemake.input.cohort)
-    template = build_template(
-        ssm.mean, cohort.faces, cohort.landmarks, TEMPLATE_RESOLUTIONS[snakemake.params.resolution]
+    resolution = dataclasses.replace(
+        TEMPLATE_RESOLUTIONS[snakemake.params.resolution],
+        cep_diameter_fraction=float(snakemake.params.cep_diameter_fraction),
     )
+    template = build_template(ssm.mean, cohort.faces, cohort.landmarks, resolution)
     log.info(
         "template: %d nodes (%d hex nodes), %d hexes, %d surface triangles, %d ligaments, %d element sets",
         template.n_nodes,

@@ -9,7 +9,8 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
   cancellous core.
 * Each **disc** has a cartilage endplate (CEP) layer at the top and bottom (0.7 mm, the seed's value), and
   in between the nucleus pulposus (NP: the core and inner rings, ~40 % of the cross-section area) and the
-  annulus fibrosus (AF: the outer rings, in radial layers).  Disc node layers are always placed by
+  annulus fibrosus (AF: the outer rings, in radial layers).  ``cep_diameter_fraction`` < 1 makes the CEP cover
+  the central endplate only, the outer rings of the CEP layers annulus (reaching the bony rim, as in vivo).  Disc node layers are always placed by
   interpolation between the two adjacent endplates, so a disc fills exactly the space between them.
 * **Surface elements** (S3) for the posterior elements of every vertebra, the sacrum, the pelvis and both
   femoral heads: the triangles of the mean triangulated shape, whose nodes are SSM vertices.
@@ -43,6 +44,11 @@ class TemplateResolution:
     np_area_fraction: float = 0.40  # nucleus share of the disc cross-section area (seed: 40 %)
     shell_fraction: float = 0.06  # radial share of the outermost ring (cortical shell / outer AF lamella)
     cep_thickness_mm: float = 0.7  # cartilage endplate thickness (seed: 0.7 mm)
+    #: the CEP layers are CEP out to the ring boundary whose enclosed area is nearest this fraction squared, annulus
+    #: beyond it.  1.0 (the validated decks): the whole layer.  In vivo the cartilage covers ~70 % of the endplate's
+    #: diameter and the outer annulus inserts into the bony rim (Wang, Battie & Videman 2012 Eur Spine J 21:2316);
+    #: 0.70 is measured in docs/rom.md "Session 13" (the lumbar model does not converge with it yet)
+    cep_diameter_fraction: float = 1.0
     exponent: float = 2.6  # superellipse exponent of the cross-section
 
 
@@ -65,6 +71,7 @@ class OGrid:
     outer: np.ndarray  # (4 * core_cells,) node ids of the outer boundary, counter-clockwise
     np_ring: int  # quads with quad_ring <= np_ring are nucleus
     shell_ring: int  # the outermost ring index
+    cep_ring: int  # in a disc's CEP layers, quads with quad_ring <= cep_ring are CEP, the others annulus
 
 
 def _square_boundary(c: float, n: int) -> np.ndarray:
@@ -124,6 +131,8 @@ def ogrid(res: TemplateResolution) -> OGrid:
         [np.linspace(0, f_np, k_np + 1)[1:], np.linspace(f_np, 1.0 - res.shell_fraction, rings - k_np)[1:], [1.0]]
     )
     ring_nodes = inner[None] + f[:, None, None] * (outer - inner)[None]  # (rings, 4n, 2)
+    enclosed = np.array([_polygon_area(r) for r in ring_nodes]) / total  # area inside ring k's outer boundary
+    cep_ring = 1 + int(np.argmin(np.abs(enclosed - res.cep_diameter_fraction**2)))
     nodes = np.concatenate([core, ring_nodes.reshape(-1, 2)])
 
     def core_id(i, j):
@@ -147,7 +156,7 @@ def ogrid(res: TemplateResolution) -> OGrid:
     p = nodes[quads]
     area = 0.5 * np.sum(p[:, :, 0] * np.roll(p[:, :, 1], -1, 1) - p[:, :, 1] * np.roll(p[:, :, 0], -1, 1), 1)
     quads[area < 0] = quads[area < 0][:, ::-1]
-    return OGrid(nodes, quads, np.array(ring_of), prev, k_np, rings)
+    return OGrid(nodes, quads, np.array(ring_of), prev, k_np, rings, cep_ring)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -215,6 +224,7 @@ class HexTemplate:
             "resolution": asdict(self.resolution),
             "np_ring": self.grid.np_ring,
             "shell_ring": self.grid.shell_ring,
+            "cep_ring": self.grid.cep_ring,
             "meta": self.meta,
             "elsets": list(self.elsets),
             "nsets": list(self.nsets),
@@ -249,6 +259,7 @@ class HexTemplate:
                 z["grid_outer"],
                 meta["np_ring"],
                 meta["shell_ring"],
+                meta.get("cep_ring", meta["shell_ring"]),  # templates before session 13: the whole layer is CEP
             )
             return cls(
                 nodes=z["nodes"],
@@ -302,6 +313,7 @@ def build_template(
     ids = np.arange(len(grid.quads))
     shell = grid.quad_ring == grid.shell_ring
     nucleus = grid.quad_ring <= grid.np_ring
+    cep = grid.quad_ring <= grid.cep_ring
     n_disc = res.disc_layers + 2  # element layers per disc, CEPs included
     for L in range(n_layers - 1):
         top = layers[L + 1]
@@ -314,8 +326,11 @@ def build_template(
         # a disc element layer: below a disc node layer, or the last one below a vertebra's inferior endplate
         disc, k_top = (top["disc"], top["k"]) if top["kind"] == "disc" else (layers[L]["disc"], n_disc)
         name = _compact(disc)
-        if k_top in (1, n_disc):
-            elsets.setdefault(f"D_{name}_CEP", []).append((L, ids))
+        if k_top in (1, n_disc):  # a CEP layer: cartilage over the central endplate, the annulus reaching the rim
+            elsets.setdefault(f"D_{name}_CEP", []).append((L, ids[cep]))
+            if not cep.all():  # (a whole-layer CEP writes the sets in the decks' historical order)
+                elsets.setdefault(f"D_{name}_NP", [])
+                elsets.setdefault(f"D_{name}_AF", []).append((L, ids[~cep]))
         else:
             elsets.setdefault(f"D_{name}_NP", []).append((L, ids[nucleus]))
             elsets.setdefault(f"D_{name}_AF", []).append((L, ids[~nucleus]))
