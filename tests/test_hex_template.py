@@ -13,18 +13,22 @@ from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.procrustes import procrustes_align
 
 
+def quad_areas(g):
+    """(q,) signed area of each O-grid quad (shoelace; > 0 counter-clockwise)."""
+    p = g.nodes[g.quads]
+    return 0.5 * np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1)
+
+
 def test_ogrid_counts_and_nucleus_fraction():
     res = TEMPLATE_RESOLUTIONS["coarse"]
     g = ogrid(res)
     # core 4 x 4 quads + 3 rings of 16: 64 quads; 5 x 5 core nodes + 3 x 16 ring nodes: 73 nodes
     assert len(g.quads) == 64 and len(g.nodes) == 73
-    p = g.nodes[g.quads]
-    area = 0.5 * np.abs(np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1))
+    area = np.abs(quad_areas(g))
     frac = area[g.quad_ring <= g.np_ring].sum() / area.sum()
     assert frac == pytest.approx(0.40, abs=0.005)  # nucleus 40 % of the cross-section (seed)
     # every quad counter-clockwise (positive area) so every hex has a positive Jacobian when extruded upwards
-    signed = 0.5 * np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1)
-    assert (signed > 0).all()
+    assert (quad_areas(g) > 0).all()
 
 
 def test_cep_covers_the_ring_boundary_nearest_its_diameter_share():
@@ -35,8 +39,7 @@ def test_cep_covers_the_ring_boundary_nearest_its_diameter_share():
 
     def cep_area(res):
         g = ogrid(res)
-        p = g.nodes[g.quads]
-        area = 0.5 * np.abs(np.sum(p[..., 0] * np.roll(p[..., 1], -1, 1) - p[..., 1] * np.roll(p[..., 0], -1, 1), 1))
+        area = np.abs(quad_areas(g))
         return g, area[g.quad_ring <= g.cep_ring].sum() / area.sum()
 
     g, share = cep_area(TEMPLATE_RESOLUTIONS["coarse"])

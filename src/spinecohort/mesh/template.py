@@ -10,8 +10,9 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
 * Each **disc** has a cartilage endplate (CEP) layer at the top and bottom (0.7 mm, the seed's value), and
   in between the nucleus pulposus (NP: the core and inner rings, ~40 % of the cross-section area) and the
   annulus fibrosus (AF: the outer rings, in radial layers).  ``cep_diameter_fraction`` < 1 makes the CEP cover
-  the central endplate only, the outer rings of the CEP layers annulus (reaching the bony rim, as in vivo).  Disc node layers are always placed by
-  interpolation between the two adjacent endplates, so a disc fills exactly the space between them.
+  the central endplate only, the outer rings of the CEP layers annulus (reaching the bony rim, as in vivo).
+  Disc node layers are always placed by interpolation between the two adjacent endplates, so a disc fills
+  exactly the space between them.
 * **Surface elements** (S3) for the posterior elements of every vertebra, the sacrum, the pelvis and both
   femoral heads: the triangles of the mean triangulated shape, whose nodes are SSM vertices.
 * **Ligaments** as 2-node elements between landmark nodes of adjacent levels: ISL, SSL, LF, CL, ITL, PLL
