@@ -5,7 +5,7 @@ import pytest
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS
 from spinecohort.fe.abaqus import read_inp, write_inp
-from spinecohort.fe.export import fe_model
+from spinecohort.fe.export import ANNULUS_GROUND, fe_model
 from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
 from spinecohort.mesh.quality import scaled_jacobian
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, HexTemplate, ogrid
@@ -50,20 +50,43 @@ def test_cep_covers_the_ring_boundary_nearest_its_diameter_share():
     assert abs(share - 0.49) < abs(0.40 - 0.49)
 
 
-def test_a_partial_cep_turns_the_rim_of_its_layers_into_annulus(small_cohort):
-    """cep_diameter_fraction 0.70 at coarse: per disc the two CEP layers keep the 32 nucleus quads, their 32 outer
-    quads join the annulus (3 x 32 + 2 x 32), and every hex stays in exactly one tissue set."""
+@pytest.fixture(scope="module")
+def partial_cep_template(small_cohort):
     import dataclasses
 
     from spinecohort.mesh.template import build_template
 
     res = dataclasses.replace(TEMPLATE_RESOLUTIONS["coarse"], cep_diameter_fraction=0.70)
-    t = build_template(build_ssm_mean(small_cohort), small_cohort.faces, small_cohort.landmarks, res)
+    return build_template(build_ssm_mean(small_cohort), small_cohort.faces, small_cohort.landmarks, res)
+
+
+def test_a_partial_cep_turns_the_rim_of_its_layers_into_annulus(partial_cep_template):
+    """cep_diameter_fraction 0.70 at coarse: per disc the two CEP layers keep the 32 nucleus quads, their 32 outer
+    quads become the annulus' rim insertion D_<disc>_RIM (2 x 32; the fibred annulus keeps its 3 x 32), and every
+    hex stays in exactly one tissue set; Table 3's tissue label counts the rim as annulus."""
+    t = partial_cep_template
     for up, lo in DISCS:
         name = f"D_{up}{lo}"
-        assert len(t.elsets[f"{name}_CEP"]) == 2 * 32 and len(t.elsets[f"{name}_AF"]) == 5 * 32
+        assert len(t.elsets[f"{name}_CEP"]) == 2 * 32 and len(t.elsets[f"{name}_RIM"]) == 2 * 32
+        assert len(t.elsets[f"{name}_AF"]) == 3 * 32
     hex_sets = np.concatenate([v for k, v in t.elsets.items() if t.elset_kind[k] == "hex"])
     assert np.array_equal(np.sort(hex_sets), np.arange(len(t.hexes)))
+    assert (t.part_of_hex() == "AF").sum() == len(DISCS) * 5 * 32
+
+
+def test_the_rim_insertion_is_annulus_ground_substance_in_the_bones_element_without_fibres(partial_cep_template):
+    """The deck of a partial-CEP template (docs/rom.md "Session 14"): the rim sets carry the annulus' ground
+    substance (material AF), sit in the bone's C3D8 block (not the C3D8R annulus block), and host no fibre spring:
+    2 springs per fibred annulus hex, 17 discs x 3 x 32 hexes."""
+    fe = fe_model(partial_cep_template)
+    section = {s.elset: s for s in fe.sections}
+    n_bone = len(fe.element_blocks["HEXES"][1])
+    assert fe.element_blocks["HEXES"][0] == "C3D8"
+    for up, lo in DISCS:
+        rim = f"D_{up}{lo}_RIM"
+        assert section[rim].material == ANNULUS_GROUND and section[rim].orientation is None
+        assert len(fe.element_sets[rim]) == 2 * 32 and (fe.element_sets[rim] < n_bone).all()
+    assert len(fe.element_blocks["FIBRES"][1]) == len(DISCS) * 3 * 32 * 2
 
 
 def test_template_counts_and_sets(template, small_cohort):

@@ -213,11 +213,13 @@ _HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [
 
 
 def hex_tissue(template) -> np.ndarray:
-    """(E,) tissue of every hex: a key of ``HEX_PART_STYLE`` (the suffix of its element set's name)."""
+    """(E,) tissue of every hex: a key of ``HEX_PART_STYLE`` (the suffix of its element set's name; the annulus'
+    rim insertion ``_RIM`` drawn as annulus)."""
     out = np.full(len(template.hexes), "", dtype=object)
     for name, idx in template.elsets.items():
         if template.elset_kind[name] == "hex":
-            out[idx] = name.rsplit("_", 1)[1]
+            tissue = name.rsplit("_", 1)[1]
+            out[idx] = "AF" if tissue == "RIM" else tissue
     if np.any(out == ""):
         raise ValueError("the template has hexes outside every element set")
     return out.astype(str)
@@ -413,7 +415,9 @@ def _disc_detail_camera(template, points: np.ndarray, disc: str) -> tuple[np.nda
     body = {
         lv: points[np.unique(template.hexes[template.elsets[f"V_{lv}_CORE"]])].mean(axis=0) for lv in (upper, lower)
     }
-    disc_hexes = np.concatenate([template.elsets[f"D_{disc}_{t}"] for t in ("NP", "AF", "CEP")])
+    disc_hexes = np.concatenate(
+        [template.elsets.get(f"D_{disc}_{t}", np.zeros(0, np.int64)) for t in ("NP", "AF", "CEP", "RIM")]
+    )
     disc_nodes = np.unique(template.hexes[disc_hexes])
     focal = points[disc_nodes].mean(axis=0)
     scale = 0.62 * float(np.linalg.norm(body[upper] - body[lower]))

@@ -123,6 +123,9 @@ class FEMaterials:
 FIBRE_MODELS = ("springs", "elastic_fiber")
 #: the annulus ground substance's material with spring fibres (Neo-Hooke)
 ANNULUS_GROUND = "AF"
+#: hex sets of the annulus' insertion into the bony rim, in the CEP layers outside the cartilage (template
+#: ``cep_diameter_fraction`` < 1): ground substance, no fibres, the bone's element type (docs/rom.md "Session 14")
+RIM_SUFFIX = "_RIM"
 
 #: bilinear ligaments (E1, E2 MPa, transition strain, area mm^2): moduli of Goel et al. 1995 via Kim et al. 2013;
 #: areas calibrated inside the published range (config/config.yaml, docs/rom.md): ALL and CL Goel's, the others
@@ -309,8 +312,11 @@ def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> li
         LinearElastic("CEP", *mats.cep),
         MooneyRivlin("NP", *mats.nucleus),
     ]
+    ground = NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa)
     if mats.fibre_springs:
-        return cards + [NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa)]
+        return cards + [ground]
+    if template is not None and any(name.endswith(RIM_SUFFIX) for name in template.elsets):
+        cards.append(ground)  # the annulus' rim insertion is ground substance in either fibre model
     if not mats.k1_graded:
         return cards + [UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
     if template is None:
@@ -335,7 +341,7 @@ def disc_orientations(template: HexTemplate, points: np.ndarray) -> dict[str, Or
 
 
 def hex_section(name: str, orientations: dict[str, Orientation] | None) -> Section:
-    """Section of a template hex set (V_<lvl>_CORE/SHELL, D_<disc>_NP/AF/CEP) or of an annulus ring's set
+    """Section of a template hex set (V_<lvl>_CORE/SHELL, D_<disc>_NP/AF/CEP/RIM) or of an annulus ring's set
     (D_<disc>_AF_R<k>, `annulus_ring_sets`: material ELASTIC_FIBER_AF_R<k>, the disc's orientation).
     orientations None: spring fibres, the annulus is its isotropic ground substance (material AF)."""
     parts = name.split("_")
@@ -348,7 +354,8 @@ def hex_section(name: str, orientations: dict[str, Orientation] | None) -> Secti
         if tissue == "AF":
             return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
     # AF with spring fibres: its ground substance, material ANNULUS_GROUND ("AF")
-    return Section(elset=name, material={"CORE": "CANCELLOUS", "SHELL": "CORTICAL"}.get(tissue, tissue))
+    material = {"CORE": "CANCELLOUS", "SHELL": "CORTICAL", RIM_SUFFIX[1:]: ANNULUS_GROUND}.get(tissue, tissue)
+    return Section(elset=name, material=material)
 
 
 def annulus_fibres(

@@ -10,7 +10,9 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
 * Each **disc** has a cartilage endplate (CEP) layer at the top and bottom (0.7 mm, the seed's value), and
   in between the nucleus pulposus (NP: the core and inner rings, ~40 % of the cross-section area) and the
   annulus fibrosus (AF: the outer rings, in radial layers).  ``cep_diameter_fraction`` < 1 makes the CEP cover
-  the central endplate only, the outer rings of the CEP layers annulus (reaching the bony rim, as in vivo).
+  the central endplate only and the outer rings of the CEP layers the annulus' insertion into the bony rim
+  (``D_<disc>_RIM``, as in vivo): annulus ground substance without fibre springs, in the bone's element type
+  (docs/rom.md "Session 14": 0.7 mm layers too thin for a fibre segment; C3D8R there inverted).
   Disc node layers are always placed by interpolation between the two adjacent endplates, so a disc fills
   exactly the space between them.
 * **Surface elements** (S3) for the posterior elements of every vertebra, the sacrum, the pelvis and both
@@ -18,8 +20,8 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
 * **Ligaments** as 2-node elements between landmark nodes of adjacent levels: ISL, SSL, LF, CL, ITL, PLL
   (the seed's six groups) and ALL (anterior longitudinal ligament, a seventh group, switchable at export).
 
-Element and node sets: ``V_<lvl>_CORE``, ``V_<lvl>_SHELL`` per vertebra, ``D_<up><lo>_NP/_AF/_CEP`` per disc
-(e.g. ``D_L4L5_NP``), ``POST_<lvl>``, ``SACRUM``, ``PELVIS``, ``FH_L``, ``FH_R``, ``LIG_<group>``; node sets
+Element and node sets: ``V_<lvl>_CORE``, ``V_<lvl>_SHELL`` per vertebra, ``D_<up><lo>_NP/_AF/_CEP`` (and
+``_RIM`` when the CEP covers the central endplate only) per disc (e.g. ``D_L4L5_NP``), ``POST_<lvl>``, ``SACRUM``, ``PELVIS``, ``FH_L``, ``FH_R``, ``LIG_<group>``; node sets
 ``EP_SUP_<lvl>``, ``EP_INF_<lvl>``, ``EP_SUP_S1``, ``FH_L``, ``FH_R``, ``SACRUM`` (boundary conditions).
 """
 
@@ -48,7 +50,8 @@ class TemplateResolution:
     #: the CEP layers are CEP out to the ring boundary whose enclosed area is nearest this fraction squared, annulus
     #: beyond it.  1.0 (the validated decks): the whole layer.  In vivo the cartilage covers ~70 % of the endplate's
     #: diameter and the outer annulus inserts into the bony rim (Wang, Battie & Videman 2012 Eur Spine J 21:2316);
-    #: 0.70 is measured in docs/rom.md "Session 13" (the lumbar model does not converge with it yet)
+    #: the rim of the layers is then ``D_<disc>_RIM``.  0.70 is measured in docs/rom.md "Session 13" and "Session
+    #: 14": the soft rim is crushed where a disc closes (T2-T3 lateral bending, L5-S1 extension stop short of the load)
     cep_diameter_fraction: float = 1.0
     exponent: float = 2.6  # superellipse exponent of the cross-section
 
@@ -210,12 +213,14 @@ class HexTemplate:
         return int(self.nodes.shape[0])
 
     def part_of_hex(self) -> np.ndarray:
-        """(E,) tissue label per hex: 'vertebra' | 'AF' | 'NP' | 'CEP' (for the Table 3 summary)."""
+        """(E,) tissue label per hex: 'vertebra' | 'AF' | 'NP' | 'CEP' (for the Table 3 summary; the annulus'
+        rim insertion ``_RIM`` is annulus)."""
         out = np.empty(len(self.hexes), dtype=object)
         for name, idx in self.elsets.items():
             if self.elset_kind[name] != "hex":
                 continue
-            out[idx] = "vertebra" if name.startswith("V_") else name.rsplit("_", 1)[1]
+            tissue = name.rsplit("_", 1)[1]
+            out[idx] = "vertebra" if name.startswith("V_") else {"RIM": "AF"}.get(tissue, tissue)
         return out.astype(str)
 
     def save(self, path: str | Path) -> None:
@@ -330,8 +335,7 @@ def build_template(
         if k_top in (1, n_disc):  # a CEP layer: cartilage over the central endplate, the annulus reaching the rim
             elsets.setdefault(f"D_{name}_CEP", []).append((L, ids[cep]))
             if not cep.all():  # (a whole-layer CEP writes the sets in the decks' historical order)
-                elsets.setdefault(f"D_{name}_NP", [])
-                elsets.setdefault(f"D_{name}_AF", []).append((L, ids[~cep]))
+                elsets.setdefault(f"D_{name}_RIM", []).append((L, ids[~cep]))
         else:
             elsets.setdefault(f"D_{name}_NP", []).append((L, ids[nucleus]))
             elsets.setdefault(f"D_{name}_AF", []).append((L, ids[~nucleus]))

@@ -1,0 +1,221 @@
+"""Where a ROM case stops converging: solve one load case of one extraction with every node's displacement
+printed at every converged increment, then rank the hexes by their corner Jacobian (deformed / reference) and
+the fibre and ligament springs by their strain at the last converged load fraction.
+
+    .venv/bin/python scripts/rom_diagnose.py OUT --segment T10-S1 --case flexion [--cep-fraction 0.7]
+        [--no-rim-fibres] [--rim-c3d8] [fe.annulus.fibres.angle_deg=46 ...]
+
+--cep-fraction relabels a whole-layer-CEP template's cartilage-endplate layers (no node moves, so the model
+deck's coordinates stay valid): the hexes outside the cartilage join their disc's annulus set, fibre springs and
+C3D8R included (session 13's representation); --no-rim-fibres leaves them without fibre springs, --rim-c3d8 puts
+them in the bone's C3D8 block (both together: what `template.cep_diameter_fraction` now builds, the D_<disc>_RIM
+sets).  Written for session 14's question (docs/rom.md "Session 14"): why the T10-S1 model stalls with the
+annulus reaching the bony rim.  Prints the status, the last converged load fraction, the hexes with the smallest
+corner-Jacobian ratio (deformed / reference; < 0: inverted) per element block and the most stretched springs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+
+def relabel_cep(template, fraction: float):
+    """The template with its CEP layers' hexes outside the ring nearest `fraction` of the diameter moved to the
+    annulus set of their disc, and the set of the moved hexes (template hex ids)."""
+    from spinecohort.mesh.template import ogrid
+
+    grid = ogrid(dataclasses.replace(template.resolution, cep_diameter_fraction=fraction))
+    ring = template.grid.quad_ring[np.arange(len(template.hexes)) % len(template.grid.quads)]
+    elsets = dict(template.elsets)
+    moved = []
+    for name, idx in template.elsets.items():
+        if not name.endswith("_CEP"):
+            continue
+        out = idx[ring[idx] > grid.cep_ring]
+        elsets[name] = idx[ring[idx] <= grid.cep_ring]
+        af = name[: -len("_CEP")] + "_AF"
+        elsets[af] = np.sort(np.concatenate([template.elsets[af], out]))
+        moved.append(out)
+    g = dataclasses.replace(template.grid, cep_ring=grid.cep_ring)
+    return dataclasses.replace(template, elsets=elsets, grid=g), np.concatenate(moved)
+
+
+def add_rim_contact(model, template, share: float, stiffness_n_per_mm: float) -> None:
+    """Compression-only struts across every disc of the submodel, between the two endplates' O-grid boundary nodes
+    (16 per disc): no force until the disc has lost `share` of its local height there, then `stiffness_n_per_mm`
+    (`spinecohort.fe.facets.strut_table`): the bony rims meeting through the compressed annulus (an experiment)."""
+    from spinecohort.fe.abaqus import Section
+    from spinecohort.fe.facets import strut_table
+
+    sub_of = {int(t): i for i, t in enumerate(model.source_nodes) if t >= 0}
+    n2 = len(template.grid.nodes)
+    fe = model.fe
+    first = sum(len(c) for _, c in fe.element_blocks.values())
+    pairs = []
+    for upper, lower in model.segments():
+        up = template.nsets[f"EP_INF_{upper}"]
+        lo = template.nsets[f"EP_SUP_{lower}"]
+        up = {int(t) % n2: int(t) for t in up}
+        lo = {int(t) % n2: int(t) for t in lo}
+        pairs += [(sub_of[up[g]], sub_of[lo[g]]) for g in template.grid.outer if up[g] in sub_of and lo[g] in sub_of]
+    conn = np.array(pairs, dtype=np.int64)
+    fe.element_blocks["RIMS"] = ("SPRINGA", conn)
+    length = np.linalg.norm(fe.nodes[conn[:, 0]] - fe.nodes[conn[:, 1]], axis=1)
+    for k, h in enumerate(length):
+        fe.element_sets[f"RIMC_{k + 1}"] = np.array([first + k])
+        table = strut_table(share * h, stiffness_n_per_mm, h, blend_mm=0.05, reach_mm=0.4 * h * (1 - share))
+        fe.sections.append(Section(elset=f"RIMC_{k + 1}", spring_force_elongation=table))
+    print(f"rim contact: {len(conn)} struts, {length.min():.2f}-{length.max():.2f} mm, engaging at {share:.0%} lost")
+
+
+def corner_jacobians(x: np.ndarray, hexes8: np.ndarray) -> np.ndarray:
+    """(E, 8) det of the edge triad at each corner of C3D8-ordered hexes, x (N, 3) mm."""
+    nb = np.array([[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7], [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]])
+    c = x[hexes8]  # (E, 8, 3)
+    e = c[:, nb] - c[:, :, None]  # (E, 8, 3, 3)
+    return np.linalg.det(e)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("overrides", nargs="*")
+    ap.add_argument("--config", type=Path, default=Path("config/config.yaml"))
+    ap.add_argument("--segment", default="T10-S1")
+    ap.add_argument("--case", default="flexion")
+    ap.add_argument("--cep-fraction", type=float, default=None)
+    ap.add_argument("--no-rim-fibres", action="store_true")
+    ap.add_argument("--rim-c3d8", action="store_true", help="the moved rim hexes as C3D8 (full integration)")
+    ap.add_argument("--correction-tolerance", type=float, default=None, help="ccx C_n (run_case's attempt 2: 2.0)")
+    ap.add_argument("--rim-contact", type=float, default=None, help="rim contact struts engaging at this share of lost height")
+    ap.add_argument("--rim-stiffness", type=float, default=500.0, help="N/mm per rim strut once engaged")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--analyse-only", action="store_true", help="read OUT's .dat of an earlier (or running) solve")
+    args = ap.parse_intermixed_args(argv)
+    sys.path.insert(0, str(Path(__file__).parent))
+    from rom_explore import override
+
+    import spinecohort.rom.submodel as submodel
+    from spinecohort.fe.calculix import CalculixError, parse_dat, run_ccx
+    from spinecohort.fe.export import materials_from_config, read_deck_points
+    from spinecohort.layout import Layout
+    from spinecohort.mesh.template import HexTemplate
+    from spinecohort.rom.deck import rom_deck_text
+    from spinecohort.rom.run import Settings
+
+    cfg = yaml.safe_load(args.config.read_text())
+    for item in args.overrides:
+        override(cfg, item)
+    settings = Settings.from_config(copy.deepcopy(cfg["rom"]))
+    layout = Layout(cfg["results"])
+    template = HexTemplate.load(layout.template)
+    points = read_deck_points(Path(layout.model_file(cfg["rom"]["model"], "inp")), template)
+    moved = np.zeros(0, np.int64)
+    if args.cep_fraction is not None:
+        template, moved = relabel_cep(template, args.cep_fraction)
+        print(f"CEP fraction {args.cep_fraction}: cep_ring {template.grid.cep_ring}, {len(moved)} hexes -> annulus")
+    if args.no_rim_fibres and len(moved):
+        real = submodel.annulus_fibres
+
+        def fibres_off_rim(tpl, pts, mats, hex_ids=None):
+            ids = np.flatnonzero(np.ones(len(tpl.hexes), bool)) if hex_ids is None else np.asarray(hex_ids)
+            return real(tpl, pts, mats, np.setdiff1d(ids, moved))
+
+        submodel.annulus_fibres = fibres_off_rim
+    if args.rim_c3d8 and len(moved):
+        import spinecohort.fe.export as export
+
+        # the rim hexes in their own sets D_<disc>_RIM_AF (one element type per section), same material and axis
+        for name in [k for k in template.elsets if k.endswith("_AF")]:
+            rim = np.intersect1d(template.elsets[name], moved)
+            template.elsets[name] = np.setdiff1d(template.elsets[name], moved)
+            template.elsets[name[:-3] + "_RIM_AF"] = rim
+            template.elset_kind[name[:-3] + "_RIM_AF"] = "hex"
+        real_orient = export.disc_orientations
+
+        def with_rim_axes(tpl, pts):
+            o = real_orient(tpl, pts)
+            return {**o, **{k + "_RIM": v for k, v in o.items()}}
+
+        export.disc_orientations = with_rim_axes
+        real_disc = export.disc_hexes
+
+        def disc_but_rim(tpl, tissues=export.DISC_TYPE_TISSUES):
+            mask = real_disc(tpl, tissues)
+            mask[moved] = False  # -> the bone/CEP block, C3D8
+            return mask
+
+        export.disc_hexes = disc_but_rim
+    mats = materials_from_config(cfg["fe"])
+    top, bottom = args.segment.split("-")
+    model = submodel.extract_rom_model(
+        template,
+        points,
+        top,
+        bottom,
+        materials=mats,
+        hex_type=settings.hex_type,
+        disc_hex_type=settings.disc_hex_type,
+        nucleus_hex_type=settings.nucleus_hex_type,
+        facets=mats.facets,
+    )
+    if args.rim_contact is not None:
+        add_rim_contact(model, template, args.rim_contact, args.rim_stiffness)
+    args.out.mkdir(parents=True, exist_ok=True)
+    kw = settings.deck_kw()
+    if args.correction_tolerance is not None:
+        kw["correction_tolerance"] = args.correction_tolerance
+    text = rom_deck_text(model, args.case, settings.moment_nmm, **kw)
+    text = text.replace("*END STEP", "*NODE PRINT, NSET=NALL\nU\n*END STEP")
+    deck = args.out / f"diag_{args.case}.inp"
+    dat = args.out / f"diag_{args.case}.dat"
+    if args.analyse_only:
+        blocks, status = parse_dat(dat.read_text()), "analysed as found"
+    else:
+        deck.write_text(text)
+        try:
+            res = run_ccx(deck, args.out, threads=args.threads, timeout_s=7200)
+            blocks, status = res.node_prints, "converged"
+        except CalculixError as exc:
+            blocks, status = parse_dat(dat.read_text()), str(exc).splitlines()[-1]
+    alln = [b for b in blocks if b.node_set.upper() == "NALL"]
+    last = alln[-1]
+    print(f"{status}; last converged load fraction {last.time:.4f}")
+    u = np.zeros_like(model.fe.nodes)
+    u[np.asarray(last.node_ids, int) - 1] = last.values
+    x0, x1 = model.fe.nodes, model.fe.nodes + u
+    src = model.source_nodes
+    tmpl_hex_of = {}
+    first = 0
+    for name, (etype, conn) in model.fe.element_blocks.items():
+        if etype.startswith("C3D"):
+            h = conn[:, :8]
+            ratio = corner_jacobians(x1, h) / corner_jacobians(x0, h)
+            worst = np.argsort(ratio.min(1))[:12]
+            print(f"block {name} ({etype}, {len(h)}): corner J ratio min {ratio.min():.3f} max {ratio.max():.3f}")
+            for e in worst:
+                z = x0[h[e]].mean(0)
+                tmpl_hex_of[first + e] = src[h[e]]
+                sets = [k for k, v in model.fe.element_sets.items() if (first + e) in set(v.tolist())][:3]
+                print(f"   el {first + e + 1}: J ratio {ratio[e].min():.3f} at {np.round(z, 1)} sets {sets}")
+        elif etype.startswith("SPRING"):
+            lo = np.linalg.norm(x0[conn[:, 1]] - x0[conn[:, 0]], axis=1)
+            ln = np.linalg.norm(x1[conn[:, 1]] - x1[conn[:, 0]], axis=1)
+            strain = ln / lo - 1
+            worst = np.argsort(-strain)[:8]
+            print(f"block {name} ({etype}, {len(conn)}): strain max {strain.max():.3f}, >0.3: {(strain > 0.3).sum()}")
+            for e in worst:
+                print(f"   el {first + e + 1}: strain {strain[e]:.3f}, L0 {lo[e]:.3f} mm at {np.round(x0[conn[e]].mean(0), 1)}")
+        first += len(conn)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
