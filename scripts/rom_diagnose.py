@@ -3,7 +3,8 @@ printed at every converged increment, then rank the hexes by their corner Jacobi
 the fibre and ligament springs by their strain at the last converged load fraction.
 
     .venv/bin/python scripts/rom_diagnose.py OUT --segment T10-S1 --case flexion [--cep-fraction 0.7]
-        [--no-rim-fibres] [--rim-c3d8] [fe.annulus.fibres.angle_deg=46 ...]
+        [--no-rim-fibres] [--rim-c3d8] [--rim-contact 0.3 --rim-stiffness 2000] [--drop-ligaments ITL]
+        [--correction-tolerance 2] [--analyse-only] [fe.annulus.fibres.angle_deg=46 ...]
 
 --cep-fraction relabels a whole-layer-CEP template's cartilage-endplate layers (no node moves, so the model
 deck's coordinates stay valid): the hexes outside the cartilage join their disc's annulus set, fibre springs and
@@ -96,6 +97,7 @@ def main(argv=None) -> int:
     ap.add_argument("--correction-tolerance", type=float, default=None, help="ccx C_n (run_case's attempt 2: 2.0)")
     ap.add_argument("--rim-contact", type=float, default=None, help="rim contact struts engaging at this share of lost height")
     ap.add_argument("--rim-stiffness", type=float, default=500.0, help="N/mm per rim strut once engaged")
+    ap.add_argument("--drop-ligaments", default="", help="comma-separated ligament groups to leave out, e.g. ITL")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--analyse-only", action="store_true", help="read OUT's .dat of an earlier (or running) solve")
     args = ap.parse_intermixed_args(argv)
@@ -165,6 +167,7 @@ def main(argv=None) -> int:
         disc_hex_type=settings.disc_hex_type,
         nucleus_hex_type=settings.nucleus_hex_type,
         facets=mats.facets,
+        ligament_groups=tuple(g for g in mats.ligaments if g not in args.drop_ligaments.split(",")),
     )
     if args.rim_contact is not None:
         add_rim_contact(model, template, args.rim_contact, args.rim_stiffness)

@@ -51,7 +51,8 @@ class TemplateResolution:
     #: beyond it.  1.0 (the validated decks): the whole layer.  In vivo the cartilage covers ~70 % of the endplate's
     #: diameter and the outer annulus inserts into the bony rim (Wang, Battie & Videman 2012 Eur Spine J 21:2316);
     #: the rim of the layers is then ``D_<disc>_RIM``.  0.70 is measured in docs/rom.md "Session 13" and "Session
-    #: 14": the soft rim is crushed where a disc closes (T2-T3 lateral bending, L5-S1 extension stop short of the load)
+    #: 14": the soft rim is crushed where the thin T2-T3 disc closes in lateral bending (84 % of the load), and the
+    #: T10-S1 extension stops at 70 % on T11's posterior nodes
     cep_diameter_fraction: float = 1.0
     exponent: float = 2.6  # superellipse exponent of the cross-section
 
