@@ -21,8 +21,9 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
   (the seed's six groups) and ALL (anterior longitudinal ligament, a seventh group, switchable at export).
 
 Element and node sets: ``V_<lvl>_CORE``, ``V_<lvl>_SHELL`` per vertebra, ``D_<up><lo>_NP/_AF/_CEP`` (and
-``_RIM`` when the CEP covers the central endplate only) per disc (e.g. ``D_L4L5_NP``), ``POST_<lvl>``, ``SACRUM``, ``PELVIS``, ``FH_L``, ``FH_R``, ``LIG_<group>``; node sets
-``EP_SUP_<lvl>``, ``EP_INF_<lvl>``, ``EP_SUP_S1``, ``FH_L``, ``FH_R``, ``SACRUM`` (boundary conditions).
+``_RIM`` when the CEP covers the central endplate only) per disc (e.g. ``D_L4L5_NP``), ``POST_<lvl>``,
+``SACRUM``, ``PELVIS``, ``FH_L``, ``FH_R``, ``LIG_<group>``; node sets ``EP_SUP_<lvl>``, ``EP_INF_<lvl>``,
+``EP_SUP_S1``, ``FH_L``, ``FH_R``, ``SACRUM`` (boundary conditions).
 """
 
 from __future__ import annotations
