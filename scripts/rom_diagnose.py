@@ -212,8 +212,12 @@ def main(argv=None) -> int:
             lo = np.linalg.norm(x0[conn[:, 1]] - x0[conn[:, 0]], axis=1)
             ln = np.linalg.norm(x1[conn[:, 1]] - x1[conn[:, 0]], axis=1)
             strain = ln / lo - 1
-            worst = np.argsort(-strain)[:8]
-            print(f"block {name} ({etype}, {len(conn)}): strain max {strain.max():.3f}, >0.3: {(strain > 0.3).sum()}")
+            worst = np.concatenate([np.argsort(-strain)[:8], np.argsort(strain)[:4]])  # most stretched, shortened
+            print(
+                f"block {name} ({etype}, {len(conn)}): strain max {strain.max():.3f}, >0.3: {(strain > 0.3).sum()}, "
+                f"min {strain.min():.4f} (el {first + int(np.argmin(strain)) + 1}, shortened "
+                f"{-(ln - lo).min():.3f} mm)"
+            )
             for e in worst:
                 print(f"   el {first + e + 1}: strain {strain[e]:.3f}, L0 {lo[e]:.3f} mm at {np.round(x0[conn[e]].mean(0), 1)}")
         first += len(conn)
