@@ -194,8 +194,6 @@ def main(argv=None) -> int:
     u = np.zeros_like(model.fe.nodes)
     u[np.asarray(last.node_ids, int) - 1] = last.values
     x0, x1 = model.fe.nodes, model.fe.nodes + u
-    src = model.source_nodes
-    tmpl_hex_of = {}
     first = 0
     for name, (etype, conn) in model.fe.element_blocks.items():
         if etype.startswith("C3D"):
@@ -205,7 +203,6 @@ def main(argv=None) -> int:
             print(f"block {name} ({etype}, {len(h)}): corner J ratio min {ratio.min():.3f} max {ratio.max():.3f}")
             for e in worst:
                 z = x0[h[e]].mean(0)
-                tmpl_hex_of[first + e] = src[h[e]]
                 sets = [k for k, v in model.fe.element_sets.items() if (first + e) in set(v.tolist())][:3]
                 print(f"   el {first + e + 1}: J ratio {ratio[e].min():.3f} at {np.round(z, 1)} sets {sets}")
         elif etype.startswith("SPRING"):

@@ -215,11 +215,12 @@ _HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [
 def hex_tissue(template) -> np.ndarray:
     """(E,) tissue of every hex: a key of ``HEX_PART_STYLE`` (the suffix of its element set's name; the annulus'
     rim insertion ``_RIM`` drawn as annulus)."""
+    from spinecohort.mesh.template import set_tissue
+
     out = np.full(len(template.hexes), "", dtype=object)
     for name, idx in template.elsets.items():
         if template.elset_kind[name] == "hex":
-            tissue = name.rsplit("_", 1)[1]
-            out[idx] = "AF" if tissue == "RIM" else tissue
+            out[idx] = set_tissue(name)
     if np.any(out == ""):
         raise ValueError("the template has hexes outside every element set")
     return out.astype(str)

@@ -46,7 +46,7 @@ from spinecohort.fe.abaqus import (
 )
 from spinecohort.fe.facets import FacetContact
 from spinecohort.fe.fibres import EmbeddedFibres, embedded_fibres
-from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate
+from spinecohort.mesh.template import LIGAMENT_GROUPS, RIM_TISSUE, HexTemplate
 
 
 @dataclass(frozen=True)
@@ -123,9 +123,6 @@ class FEMaterials:
 FIBRE_MODELS = ("springs", "elastic_fiber")
 #: the annulus ground substance's material with spring fibres (Neo-Hooke)
 ANNULUS_GROUND = "AF"
-#: hex sets of the annulus' insertion into the bony rim, in the CEP layers outside the cartilage (template
-#: ``cep_diameter_fraction`` < 1): ground substance, no fibres, the bone's element type (docs/rom.md "Session 14")
-RIM_SUFFIX = "_RIM"
 
 #: bilinear ligaments (E1, E2 MPa, transition strain, area mm^2): moduli of Goel et al. 1995 via Kim et al. 2013;
 #: areas calibrated inside the published range (config/config.yaml, docs/rom.md): ALL and CL Goel's, the others
@@ -315,8 +312,9 @@ def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> li
     ground = NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa)
     if mats.fibre_springs:
         return cards + [ground]
-    if template is not None and any(name.endswith(RIM_SUFFIX) for name in template.elsets):
-        cards.append(ground)  # the annulus' rim insertion is ground substance in either fibre model
+    if template is not None and any(name.endswith("_" + RIM_TISSUE) for name in template.elsets):
+        # the annulus' rim insertion (template cep_diameter_fraction < 1) is ground substance in either fibre model
+        cards.append(ground)
     if not mats.k1_graded:
         return cards + [UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
     if template is None:
@@ -354,7 +352,7 @@ def hex_section(name: str, orientations: dict[str, Orientation] | None) -> Secti
         if tissue == "AF":
             return Section(elset=name, material=ANNULUS_MATERIAL, orientation=orientations[name[:-3]].name)
     # AF with spring fibres: its ground substance, material ANNULUS_GROUND ("AF")
-    material = {"CORE": "CANCELLOUS", "SHELL": "CORTICAL", RIM_SUFFIX[1:]: ANNULUS_GROUND}.get(tissue, tissue)
+    material = {"CORE": "CANCELLOUS", "SHELL": "CORTICAL", RIM_TISSUE: ANNULUS_GROUND}.get(tissue, tissue)
     return Section(elset=name, material=material)
 
 

@@ -221,8 +221,7 @@ class HexTemplate:
         for name, idx in self.elsets.items():
             if self.elset_kind[name] != "hex":
                 continue
-            tissue = name.rsplit("_", 1)[1]
-            out[idx] = "vertebra" if name.startswith("V_") else {"RIM": "AF"}.get(tissue, tissue)
+            out[idx] = "vertebra" if name.startswith("V_") else set_tissue(name)
         return out.astype(str)
 
     def save(self, path: str | Path) -> None:
@@ -287,6 +286,16 @@ class HexTemplate:
             )
 
 
+#: tissue suffix of the annulus' insertion into the bony rim (``D_<disc>_RIM``, a partial CEP's outer rings)
+RIM_TISSUE = "RIM"
+
+
+def set_tissue(name: str) -> str:
+    """Tissue of a hex set by its name's suffix (CORE, SHELL, NP, AF, CEP); the rim insertion counts as annulus."""
+    tissue = name.rsplit("_", 1)[1]
+    return "AF" if tissue == RIM_TISSUE else tissue
+
+
 def _compact(name: str) -> str:
     return name.replace("-", "")
 
@@ -337,7 +346,7 @@ def build_template(
         if k_top in (1, n_disc):  # a CEP layer: cartilage over the central endplate, the annulus reaching the rim
             elsets.setdefault(f"D_{name}_CEP", []).append((L, ids[cep]))
             if not cep.all():  # (a whole-layer CEP writes the sets in the decks' historical order)
-                elsets.setdefault(f"D_{name}_RIM", []).append((L, ids[~cep]))
+                elsets.setdefault(f"D_{name}_{RIM_TISSUE}", []).append((L, ids[~cep]))
         else:
             elsets.setdefault(f"D_{name}_NP", []).append((L, ids[nucleus]))
             elsets.setdefault(f"D_{name}_AF", []).append((L, ids[~nucleus]))
