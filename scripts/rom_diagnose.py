@@ -8,11 +8,14 @@ the fibre and ligament springs by their strain at the last converged load fracti
 
 --cep-fraction relabels a whole-layer-CEP template's cartilage-endplate layers (no node moves, so the model
 deck's coordinates stay valid): the hexes outside the cartilage join their disc's annulus set, fibre springs and
-C3D8R included (session 13's representation); --no-rim-fibres leaves them without fibre springs, --rim-c3d8 puts
-them in the bone's C3D8 block (both together: what `template.cep_diameter_fraction` now builds, the D_<disc>_RIM
-sets).  Written for session 14's question (docs/rom.md "Session 14"): why the T10-S1 model stalls with the
-annulus reaching the bony rim.  Prints the status, the last converged load fraction, the hexes with the smallest
-corner-Jacobian ratio (deformed / reference; < 0: inverted) per element block and the most stretched springs.
+C3D8R included (session 13's representation); --rim-c3d8 puts them in the bone's C3D8 block (what
+`template.cep_diameter_fraction` builds since session 15, the fibred D_<disc>_RIM sets); --no-rim-fibres leaves them
+without fibre springs (session 14's rim, which cuts the fibres off the bone: docs/rom.md "Session 15").  Written for
+sessions 14-15's question (docs/rom.md): why the T10-S1 model stalls with the annulus reaching the bony rim.  Prints
+the status, the last converged load fraction, the hexes with the smallest corner-Jacobian ratio (deformed /
+reference; < 0: inverted) per element block, the most stretched and shortened springs, every contact strut's state
+(open, in its rounded corner, closed) and the nodes of ccx's last largest residuals and corrections (where Newton
+cycles).
 """
 
 from __future__ import annotations
@@ -84,6 +87,49 @@ def corner_jacobians(x: np.ndarray, hexes8: np.ndarray) -> np.ndarray:
     return np.linalg.det(e)
 
 
+def contact_states(fe, x0: np.ndarray, x1: np.ndarray, blocks=("FACETS", "RIMS")) -> list[str]:
+    """One line per contact strut of `blocks`: its set, shortening (mm), the table's force (N) and slope (N/mm)
+    there, and its state: open, in the rounded corner (stiffness rising, where Newton iterations can flip it)
+    or closed."""
+    table = {
+        sec.elset: np.array(sec.spring_force_elongation)[:, ::-1] for sec in fe.sections if sec.spring_force_elongation
+    }
+    owner = {int(v[0]): k for k, v in fe.element_sets.items() if len(v) == 1 and k in table}
+    lines, first = [], 0
+    for name, (etype, conn) in fe.element_blocks.items():
+        if name in blocks and etype == "SPRINGA":
+            for i, (a, b) in enumerate(conn):
+                t = table[owner[first + i]]  # (elongation mm, force N), ascending
+                d = np.linalg.norm(x1[b] - x1[a]) - np.linalg.norm(x0[b] - x0[a])
+                j = int(np.clip(np.searchsorted(t[:, 0], d), 1, len(t) - 1))
+                slope = (t[j, 1] - t[j - 1, 1]) / (t[j, 0] - t[j - 1, 0])
+                full = (t[1, 1] - t[0, 1]) / (t[1, 0] - t[0, 0])  # the closed strut's slope
+                state = "open" if slope == 0 else ("closed" if np.isclose(slope, full) else "CORNER")
+                f = np.interp(d, t[:, 0], t[:, 1])
+                lines.append(
+                    f"   {owner[first + i]:<24s} {state:<6s} shortened {-d:7.3f} mm  F {f:8.1f} N  k {slope:7.0f} N/mm"
+                )
+        first += len(conn)
+    return lines
+
+
+def cycling_nodes(log: Path, fe, last: int = 12) -> list[str]:
+    """The nodes of ccx's last `last` 'largest correction' / 'largest residual' lines (where Newton cycles), with the
+    element blocks that use them."""
+    import re
+
+    hits = re.findall(
+        r"largest (residual force|correction to disp)= *(\S+) in node (\d+) and dof (\d)", log.read_text()
+    )
+    out = []
+    for kind, val, node, dof in hits[-last:]:
+        n = int(node) - 1
+        used = [b for b, (_, c) in fe.element_blocks.items() if n < len(fe.nodes) and (c == n).any()]
+        where = np.round(fe.nodes[n], 1) if n < len(fe.nodes) else "(rigid-body node)"
+        out.append(f"   {kind:<18s} {float(val):10.3g} node {node} dof {dof} at {where} in {used}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path)
@@ -95,7 +141,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-rim-fibres", action="store_true")
     ap.add_argument("--rim-c3d8", action="store_true", help="the moved rim hexes as C3D8 (full integration)")
     ap.add_argument("--correction-tolerance", type=float, default=None, help="ccx C_n (run_case's attempt 2: 2.0)")
-    ap.add_argument("--rim-contact", type=float, default=None, help="rim contact struts engaging at this share of lost height")
+    ap.add_argument(
+        "--rim-contact", type=float, default=None, help="rim contact struts engaging at this share of lost height"
+    )
     ap.add_argument("--rim-stiffness", type=float, default=500.0, help="N/mm per rim strut once engaged")
     ap.add_argument("--drop-ligaments", default="", help="comma-separated ligament groups to leave out, e.g. ITL")
     ap.add_argument("--threads", type=int, default=2)
@@ -216,8 +264,16 @@ def main(argv=None) -> int:
                 f"{-(ln - lo).min():.3f} mm)"
             )
             for e in worst:
-                print(f"   el {first + e + 1}: strain {strain[e]:.3f}, L0 {lo[e]:.3f} mm at {np.round(x0[conn[e]].mean(0), 1)}")
+                print(
+                    f"   el {first + e + 1}: strain {strain[e]:.3f}, L0 {lo[e]:.3f} mm at {np.round(x0[conn[e]].mean(0), 1)}"
+                )
         first += len(conn)
+    print("contact struts at the last converged load (CORNER: stiffness rising over fe.facets.blend_mm):")
+    print("\n".join(contact_states(model.fe, x0, x1)))
+    log = args.out / f"diag_{args.case}.log"
+    if log.exists():  # run_ccx's stdout; absent for --analyse-only of a foreign run
+        print("where the last Newton iterations cycle (ccx's largest residual / correction):")
+        print("\n".join(cycling_nodes(log, model.fe)))
     return 0
 
 

@@ -1,11 +1,13 @@
 """The hex template: documented counts and sets, conformity, tissue fractions, export round trip, hex SSM."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS
 from spinecohort.fe.abaqus import read_inp, write_inp
-from spinecohort.fe.export import ANNULUS_GROUND, fe_model
+from spinecohort.fe.export import ANNULUS_GROUND, DEFAULT_MATERIALS, fe_model
 from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
 from spinecohort.mesh.quality import scaled_jacobian
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, HexTemplate, ogrid
@@ -74,10 +76,32 @@ def test_a_partial_cep_turns_the_rim_of_its_layers_into_annulus(partial_cep_temp
     assert (t.part_of_hex() == "AF").sum() == len(DISCS) * 5 * 32
 
 
-def test_the_rim_insertion_is_annulus_ground_substance_in_the_bones_element_without_fibres(partial_cep_template):
-    """The deck of a partial-CEP template (docs/rom.md "Session 14"): the rim sets carry the annulus' ground
-    substance (material AF), sit in the bone's C3D8 block (not the C3D8R annulus block), and host no fibre spring:
-    2 springs per fibred annulus hex, 17 discs x 3 x 32 hexes."""
+def test_a_partial_cep_spaces_the_rim_of_every_disc_evenly(partial_cep_template):
+    """Outside the cartilage the annulus reaches the bone through an ordinary element layer, not a 0.7 mm one
+    (docs/rom.md "Session 15": thin rim hexes invert next to the potted T10): at every rim node the first disc
+    node layer sits 1/5 of the disc height from the endplate (5 element layers), at every cartilage node 0.7 mm."""
+    from spinecohort.mesh.template import disc_runs
+
+    t = partial_cep_template
+    n2 = len(t.grid.nodes)
+    rim = t.grid.rim_nodes()
+    assert 0 < rim.sum() < n2 and not rim[t.grid.quads[t.grid.quad_ring == 0]].any()
+    x = t.nodes[: t.n_hex_nodes].reshape(-1, n2, 3)
+    for first, end in disc_runs(t.layers):
+        low, up = x[first - 1], x[end]
+        for k, from_low in ((first, True), (end - 1, False)):
+            gap = np.linalg.norm(x[k] - (low if from_low else up), axis=1)
+            height = np.linalg.norm(up - low, axis=1)
+            np.testing.assert_allclose(gap[rim], height[rim] / 5, rtol=1e-9)
+            np.testing.assert_allclose(gap[~rim], 0.7, rtol=1e-9)
+
+
+def test_the_rim_insertion_is_fibred_annulus_in_the_bones_element(partial_cep_template):
+    """The deck of a partial-CEP template (docs/rom.md "Session 15"): the rim sets carry the annulus' ground
+    substance (material AF) and its fibre springs, which insert into the bone as in vivo, and sit in the bone's
+    C3D8 block (not the C3D8R annulus block): 2 springs per annulus and rim hex, 17 discs x (3 + 2) x 32 hexes.
+    Without the springs the 0.7 mm rim was a soft shear layer between the fibres and the bone (T2-T3 unit axial
+    rotation 27.6 deg at any fibre angle against 13.4 with them)."""
     fe = fe_model(partial_cep_template)
     section = {s.elset: s for s in fe.sections}
     n_bone = len(fe.element_blocks["HEXES"][1])
@@ -86,7 +110,11 @@ def test_the_rim_insertion_is_annulus_ground_substance_in_the_bones_element_with
         rim = f"D_{up}{lo}_RIM"
         assert section[rim].material == ANNULUS_GROUND and section[rim].orientation is None
         assert len(fe.element_sets[rim]) == 2 * 32 and (fe.element_sets[rim] < n_bone).all()
-    assert len(fe.element_blocks["FIBRES"][1]) == len(DISCS) * 3 * 32 * 2
+    assert len(fe.element_blocks["FIBRES"][1]) == len(DISCS) * (3 + 2) * 32 * 2
+    # ccx's fibre law cannot reach the rim (C3D8 aborts it): refused by name, not written without fibres
+    law = dataclasses.replace(DEFAULT_MATERIALS, fibre_model="elastic_fiber")
+    with pytest.raises(ValueError, match=r"cep_diameter_fraction < 1\) needs fe.annulus.fibres.model: springs"):
+        fe_model(partial_cep_template, materials=law)
 
 
 def test_template_counts_and_sets(template, small_cohort):

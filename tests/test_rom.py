@@ -157,6 +157,28 @@ def test_materials_from_config_equal_the_module_defaults():
     assert materials_from_config(cfg["fe"]) == DEFAULT_MATERIALS  # fe_model(template, points) == config
 
 
+def test_the_configured_corner_width_reaches_every_strut_table():
+    # fe.facets.blend_mm: a strut's stiffness rises from 0 to k over this much shortening past the clearance
+    # (a quadratic through the table's points: force -k w / 2 at depth w, then -k (d - w / 2)).  Default 0.05 mm
+    # (the validated decks); 0.2 here: at clearance 0.5 + 0.2 the force is -1670 x 0.1 = -167 N.
+    from spinecohort.fe.facets import FacetContact, FacetNodes
+
+    cfg = {
+        "clearance_mm": 0.5,
+        "stiffness_n_per_mm": 1670.0,
+        "transverse_deg": {"T1": 60.0},
+        "frontal_deg": {"T1": 0.0},
+    }
+    assert FacetContact.from_config(cfg).blend_mm == 0.05
+    facets = FacetContact.from_config({**cfg, "blend_mm": 0.2})
+    gap = (0.5, (0.0, 0.0, 1.0), 1670.0)
+    nodes = FacetNodes(np.zeros((2, 3)), np.array([[0, 1]]), [(gap, "J")], {}, 20.0, facets.blend_mm)
+    force, elongation = np.array(nodes.section_list()[0].spring_force_elongation).T
+    assert np.interp(-0.5, elongation, force) == 0.0
+    assert np.interp(-0.7, elongation, force) == pytest.approx(-167.0)
+    assert np.interp(-1.7, elongation, force) == pytest.approx(-1670.0 * (1.2 - 0.1))
+
+
 def test_validate_judges_mean_sd_and_ranges():
     # L3-L4 of a unit: flexion 2.0, extension 5.0, lateral 3.0 + 3.5; references: flexion 3.7 +- 1.5 (2 SD:
     # 0.7..6.7 -> in, distance -1.7), lateral bending full 7.6 +- 2.8 (ours 6.5 -> in, -1.1), extension range

@@ -313,8 +313,11 @@ def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> li
     if mats.fibre_springs:
         return cards + [ground]
     if template is not None and any(name.endswith("_" + RIM_TISSUE) for name in template.elsets):
-        # the annulus' rim insertion (template cep_diameter_fraction < 1) is ground substance in either fibre model
-        cards.append(ground)
+        raise ValueError(
+            "a partial cartilage endplate (template.cep_diameter_fraction < 1) needs fe.annulus.fibres.model: springs: "
+            "its rim insertion D_<disc>_RIM sits in the bone's C3D8 block, where ccx's fibre law aborts, and without "
+            "fibres it is a soft shear layer between the annulus and the bone (docs/rom.md, Session 15)"
+        )
     if not mats.k1_graded:
         return cards + [UserMaterial(ANNULUS_MATERIAL, mats.annulus_constants())]
     if template is None:
@@ -367,11 +370,12 @@ def annulus_fibres(
     ring_of_hex = template.grid.quad_ring[np.arange(len(template.hexes)) % len(template.grid.quads)]
     ids, axis_a, axis_b = [], [], []
     for name, idx in template.elsets.items():
-        if template.elset_kind[name] != "hex" or not name.endswith("_AF"):
+        # the annulus and its insertion into the bony rim (a partial CEP's D_<disc>_RIM): the fibres reach the bone
+        if template.elset_kind[name] != "hex" or not name.endswith(("_AF", "_" + RIM_TISSUE)):
             continue
         if hex_ids is not None:
             idx = idx[np.isin(idx, hex_ids)]
-        o = orient[name[:-3]]
+        o = orient[name.rsplit("_", 1)[0]]
         ids.append(idx)
         axis_a.append(np.broadcast_to(o.axis_a_mm, (len(idx), 3)))
         axis_b.append(np.broadcast_to(o.axis_b_mm, (len(idx), 3)))

@@ -67,6 +67,9 @@ class FacetContact:
     #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose
     #: direction stays fixed in space while the chain below turns the joint (docs/rom.md)
     strut_length_mm: float | None = 20.0
+    #: width (mm of shortening past the clearance) over which a strut's stiffness rises from 0 to its closed
+    #: value (`strut_table`'s rounded corner)
+    blend_mm: float = 0.05
 
     @staticmethod
     def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
@@ -107,6 +110,7 @@ class FacetContact:
             None if tip is None else float(tip),
             float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
             None if strut is None else float(strut),
+            float(cfg.get("blend_mm", 0.05)),
         )
 
 
@@ -124,6 +128,7 @@ class FacetNodes:
     sections: list[tuple[Gap, str]]
     tied: dict[str, np.ndarray]
     strut_length_mm: float | None = None
+    blend_mm: float = 0.05
 
     @property
     def element_type(self) -> str:
@@ -136,7 +141,9 @@ class FacetNodes:
         if self.strut_length_mm is None:
             return [Section(elset=name, gap=gap) for gap, name in self.sections]
         return [
-            Section(elset=name, spring_force_elongation=strut_table(gap[0], gap[2], self.strut_length_mm))
+            Section(
+                elset=name, spring_force_elongation=strut_table(gap[0], gap[2], self.strut_length_mm, self.blend_mm)
+            )
             for gap, name in self.sections
         ]
 
@@ -269,5 +276,10 @@ def facet_nodes(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, fa
             tied.setdefault(upper[i], []).append(int(2 * k * j + i))
             tied.setdefault(lower[i], []).append(int(2 * k * j + j + i))
     return FacetNodes(
-        pts, gaps, sections, {v: np.asarray(ix, dtype=np.int64) for v, ix in tied.items()}, facets.strut_length_mm
+        pts,
+        gaps,
+        sections,
+        {v: np.asarray(ix, dtype=np.int64) for v, ix in tied.items()},
+        facets.strut_length_mm,
+        facets.blend_mm,
     )

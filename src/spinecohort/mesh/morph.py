@@ -265,6 +265,6 @@ def morph_template(
         )
         if progress is not None:
             progress(k + 1, len(parts))
-    fill_discs(hex_layers, layers, template.resolution.cep_thickness_mm)
+    fill_discs(hex_layers, layers, template.resolution.cep_thickness_mm, template.grid.rim_nodes())
     nodes[: template.n_hex_nodes] = hex_layers.reshape(-1, 3)
     return nodes, pd.DataFrame(rows)

@@ -11,8 +11,10 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
   in between the nucleus pulposus (NP: the core and inner rings, ~40 % of the cross-section area) and the
   annulus fibrosus (AF: the outer rings, in radial layers).  ``cep_diameter_fraction`` < 1 makes the CEP cover
   the central endplate only and the outer rings of the CEP layers the annulus' insertion into the bony rim
-  (``D_<disc>_RIM``, as in vivo): annulus ground substance without fibre springs, in the bone's element type
-  (docs/rom.md "Session 14": 0.7 mm layers too thin for a fibre segment; C3D8R there inverted).
+  (``D_<disc>_RIM``, as in vivo): annulus with its fibre springs (the fibres insert into the bone), in the
+  bone's element type, the disc's node layers evenly spaced outside the cartilage (docs/rom.md "Session 15":
+  without fibres the rim is a soft shear layer between the fibred annulus and the bone, and the thoracic
+  units' axial rotation doubles; as a 0.7 mm layer its hexes invert next to the potted vertebra).
   Disc node layers are always placed by interpolation between the two adjacent endplates, so a disc fills
   exactly the space between them.
 * **Surface elements** (S3) for the posterior elements of every vertebra, the sacrum, the pelvis and both
@@ -51,9 +53,9 @@ class TemplateResolution:
     #: the CEP layers are CEP out to the ring boundary whose enclosed area is nearest this fraction squared, annulus
     #: beyond it.  1.0 (the validated decks): the whole layer.  In vivo the cartilage covers ~70 % of the endplate's
     #: diameter and the outer annulus inserts into the bony rim (Wang, Battie & Videman 2012 Eur Spine J 21:2316);
-    #: the rim of the layers is then ``D_<disc>_RIM``.  0.70 is measured in docs/rom.md "Session 13" and "Session
-    #: 14": the soft rim is crushed where the thin T2-T3 disc closes in lateral bending (84 % of the load), and the
-    #: T10-S1 extension stops at 70 % on T11's posterior nodes
+    #: the rim of the layers is then ``D_<disc>_RIM``.  0.70 is measured in docs/rom.md "Sessions 13-15": the
+    #: units move as in vitro (11 of 13 in range at fibres 42 and 45 deg) but the T10-S1 model stops at 69 % of
+    #: flexion and 87 % of extension (the 0.7 mm central CEP hexes under the potted T10 invert), so it is not the default
     cep_diameter_fraction: float = 1.0
     exponent: float = 2.6  # superellipse exponent of the cross-section
 
@@ -78,6 +80,12 @@ class OGrid:
     np_ring: int  # quads with quad_ring <= np_ring are nucleus
     shell_ring: int  # the outermost ring index
     cep_ring: int  # in a disc's CEP layers, quads with quad_ring <= cep_ring are CEP, the others annulus
+
+    def rim_nodes(self) -> np.ndarray:
+        """(n,) bool: the nodes outside the cartilage endplate (on no CEP quad); none when the CEP is whole."""
+        on_cep = np.zeros(len(self.nodes), bool)
+        on_cep[self.quads[self.quad_ring <= self.cep_ring].ravel()] = True
+        return ~on_cep
 
 
 def _square_boundary(c: float, n: int) -> np.ndarray:
@@ -368,7 +376,7 @@ def build_template(
             hex_nodes[L] = _place_between(
                 grid.nodes, eps[(layer["level"], "inf")], eps[(layer["level"], "sup")], layer["t"]
             )
-    fill_discs(hex_nodes, layers, res.cep_thickness_mm)
+    fill_discs(hex_nodes, layers, res.cep_thickness_mm, grid.rim_nodes())
     hex_nodes = hex_nodes.reshape(-1, 3)
     layer_of_node = np.repeat(np.arange(n_layers), n2)
 
@@ -493,12 +501,14 @@ def disc_runs(layers: list[dict]):
         yield first, L
 
 
-def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float) -> None:
+def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float, rim: np.ndarray | None = None) -> None:
     """Place every disc node layer between its two endplate layers, in place.
 
     hex_nodes: (..., n_layers, n2, 3) (a leading batch axis is allowed).  The CEP layers sit ``cep_mm``
     from each endplate along the node's own line (so the CEP thickness is exact at every node), and the
-    interior layers are evenly spaced between them.
+    interior layers are evenly spaced between them.  rim: (n2,) bool, the nodes outside a partial CEP
+    (`OGrid.rim_nodes`): there the annulus reaches the bone, and every disc layer is evenly spaced, so the
+    annulus' insertion is not a 0.7 mm element layer (docs/rom.md "Session 15": such thin hexes invert).
     """
     for first, L in disc_runs(layers):
         lower, upper = hex_nodes[..., first - 1, :, :], hex_nodes[..., L, :, :]
@@ -506,6 +516,8 @@ def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float) -> None
         d = upper - lower
         h = np.linalg.norm(d, axis=-1, keepdims=True)
         s_cep = np.minimum(cep_mm / np.maximum(h, 1e-9), 0.25)
+        if rim is not None and rim.any():
+            s_cep = np.where(rim[:, None], 1.0 / n, s_cep)
         for k in range(1, n):
             if k == 1:
                 s = s_cep
