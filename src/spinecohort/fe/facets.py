@@ -110,7 +110,7 @@ class FacetContact:
             None if tip is None else float(tip),
             float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
             None if strut is None else float(strut),
-            float(cfg.get("blend_mm", 0.05)),
+            float(cfg.get("blend_mm", cls.blend_mm)),
         )
 
 
