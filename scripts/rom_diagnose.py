@@ -12,8 +12,8 @@ C3D8R included (session 13's representation); --rim-c3d8 puts them in the bone's
 `template.cep_diameter_fraction` builds since session 15, the fibred D_<disc>_RIM sets); --no-rim-fibres leaves them
 without fibre springs (session 14's rim, which cuts the fibres off the bone: docs/rom.md "Session 15").  Written for
 sessions 14-15's question (docs/rom.md): why the T10-S1 model stalls with the annulus reaching the bony rim.  Prints
-the status, the last converged load fraction, the hexes with the smallest corner-Jacobian ratio (deformed /
-reference; < 0: inverted) per element block, the most stretched and shortened springs, every contact strut's state
+the status, the last converged load fraction, the fixed nodes' net reaction force (~0 under a pure moment), the
+hexes with the smallest corner-Jacobian ratio (deformed / reference; < 0: inverted) per element block, the most stretched and shortened springs, every contact strut's state
 (open, in its rounded corner, closed) and the nodes of ccx's last largest residuals and corrections (where Newton
 cycles).
 """
@@ -171,6 +171,11 @@ def main(argv=None) -> int:
     if args.cep_fraction is not None:
         template, moved = relabel_cep(template, args.cep_fraction)
         print(f"CEP fraction {args.cep_fraction}: cep_ring {template.grid.cep_ring}, {len(moved)} hexes -> annulus")
+    if args.no_rim_fibres and not len(moved):  # a template built with a partial CEP: its D_<disc>_RIM sets
+        from spinecohort.mesh.template import RIM_TISSUE
+
+        rims = [v for k, v in template.elsets.items() if k.endswith("_" + RIM_TISSUE)]
+        moved = np.unique(np.concatenate(rims)) if rims else moved
     if args.no_rim_fibres and len(moved):
         real = submodel.annulus_fibres
 
@@ -239,6 +244,9 @@ def main(argv=None) -> int:
     alln = [b for b in blocks if b.node_set.upper() == "NALL"]
     last = alln[-1]
     print(f"{status}; last converged load fraction {last.time:.4f}")
+    rf = [b for b in blocks if b.node_set.upper() == "FIXED" and b.time == last.time]
+    if rf:  # a pure moment: ~0 (session 16: fibre ties on fixed nodes hid their share, `FEModel.embedded_hosts`)
+        print(f"net reaction force of the fixed nodes: {np.round(np.asarray(rf[-1].values).sum(0), 2)} N")
     u = np.zeros_like(model.fe.nodes)
     u[np.asarray(last.node_ids, int) - 1] = last.values
     x0, x1 = model.fe.nodes, model.fe.nodes + u

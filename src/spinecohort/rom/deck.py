@@ -207,6 +207,7 @@ def model_load_text(
         on_rigid = ties_on(fe.midside_ties, rigid)
         rigid = np.concatenate([rigid, fe.midside_ties[on_rigid, 0]])
         fe = dataclasses.replace(fe, midside_ties=fe.midside_ties[~on_rigid])
+    rigid = rigid[~np.isin(rigid, fe.embedded_hosts())]  # a partial CEP's rim fibres tie to deformable nodes
     frame = vertebra_frame(template, fe.nodes, top)[0]
     axis, sign = LOAD_CASES[case]
     first = min(MODEL_INCREMENT_NMM / moment_nmm, MODEL_STEP_DEFAULTS["max_increment"])

@@ -309,6 +309,12 @@ def extract_rom_model(
         midside_ties=ties,
         embedded_ties=embedded,
     )
+    # a partial CEP's rim hexes touch the potted vertebrae: their fibre ties stay on deformable nodes (the
+    # bone's endplate layer hangs on the rest of the vertebra by its hexes), `FEModel.embedded_hosts`
+    hosts = fe.embedded_hosts()
+    rigid[top] = rigid[top][~np.isin(rigid[top], hosts)]
+    if bottom != "S1":  # the S1 plate is the disc's bottom layer: its tied nodes stay fixed (reaction short)
+        fixed = fixed[~np.isin(fixed, hosts)]
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
 
 
