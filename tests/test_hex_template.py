@@ -264,3 +264,25 @@ def test_a_partial_cep_unit_under_a_pure_moment_has_no_net_reaction_force(partia
     assert r.load_fraction == 1.0 and r.rotations_deg[("L3", "L4")][0] < -1.0  # a few degrees of flexion
     # zero within ccx's residual tolerance (0.5 % of the 500 N reference force per node)
     assert np.linalg.norm(r.reaction_force_n) < 2.5
+
+
+@pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed (Debian package calculix-ccx)")
+def test_a_partial_cep_lumbar_model_stands_on_a_potted_plate_and_reports_its_whole_reaction(
+    partial_cep_template, tmp_path
+):
+    """The S1 plate is the L5-S1 disc's bottom node layer, so a partial CEP's rim fibres tie to it: fixed directly,
+    their share of the force was missing from the reaction (the T10-S1 extension: 126 N).  A 1 mm cortical plate
+    under it (block POTTING) is fixed instead; a pure moment then shows no net reaction force and the fixation
+    carries the moment (test-config L5-S1, 7.5 N.m flexion)."""
+    from spinecohort.rom.run import carried_fraction, run_case
+    from spinecohort.rom.submodel import extract_rom_model
+
+    t = partial_cep_template
+    model = extract_rom_model(t, t.nodes, "L5", "S1", hex_type="C3D8", disc_hex_type="C3D8R", nucleus_hex_type="C3D20R")
+    n2 = len(t.grid.nodes)
+    assert model.fe.element_blocks["POTTING"][1].shape == (len(t.grid.quads), 8)
+    assert len(model.fixed_nodes) == n2 and not np.isin(model.fixed_nodes, model.fe.embedded_hosts()).any()
+    r = run_case(model, "flexion", tmp_path, initial_increment=0.25, max_increment=0.5, average_force_n=500.0)
+    assert r.load_fraction == 1.0 and r.rotations_deg[("L5", "S1")][0] < -1.0
+    assert np.linalg.norm(r.reaction_force_n) < 2.5
+    assert carried_fraction(r) == pytest.approx(1.0, abs=0.01)

@@ -29,6 +29,7 @@ facets between L5 and the sacrum (the template has no sacral anchors); no rib ca
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -313,9 +314,37 @@ def extract_rom_model(
     # bone's endplate layer hangs on the rest of the vertebra by its hexes), `FEModel.embedded_hosts`
     hosts = fe.embedded_hosts()
     rigid[top] = rigid[top][~np.isin(rigid[top], hosts)]
-    if bottom != "S1":  # the S1 plate is the disc's bottom layer: its tied nodes stay fixed (reaction short)
+    if bottom == "S1" and np.isin(fixed, hosts).any():
+        # the S1 plate is the L5-S1 disc's bottom node layer: a cortical plate under it carries the ties' share
+        # into the fixed nodes (no change for a whole-layer CEP, whose fibres never reach the plate)
+        if len(fixed) != n2:  # a quadratic element's midside node on the plate: fixed directly, not potted
+            raise ValueError("the S1 plate carries midside nodes; it cannot be potted under a partial CEP")
+        fe, fixed = potted_plate(fe, template.grid.quads, fixed, frames["S1"][:, 2])
+        source = np.concatenate([source, np.full(len(fixed), -1)])
+    else:
         fixed = fixed[~np.isin(fixed, hosts)]
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
+
+
+def potted_plate(
+    fe: FEModel, quads: np.ndarray, plate: np.ndarray, cranial: np.ndarray, thickness_mm: float = 1.0
+) -> tuple[FEModel, np.ndarray]:
+    """`fe` with a layer of hexes (block and set POTTING, cortical bone) under the node layer `plate` (in O-grid
+    order; `quads`: the O-grid's quads; set S1_POTTING), `thickness_mm` along -`cranial`, and the new bottom nodes, which are
+    what a model fixes instead of the plate: a constraint's force on a fixed node is missing from ccx's
+    reaction output, an element's is not (`FEModel.embedded_hosts`)."""
+    n = len(fe.nodes)
+    base = fe.nodes[plate] - thickness_mm * np.asarray(cranial, dtype=np.float64)
+    conn = np.concatenate([n + quads, plate[quads]], axis=1)  # bottom face, then top: the template's hex order
+    first = fe.n_elements
+    fe = dataclasses.replace(
+        fe,
+        nodes=np.concatenate([fe.nodes, base]),
+        element_blocks={**fe.element_blocks, "POTTING": ("C3D8", conn)},
+        element_sets={**fe.element_sets, "S1_POTTING": first + np.arange(len(conn))},
+        sections=[*fe.sections, Section(elset="S1_POTTING", material="CORTICAL")],
+    )
+    return fe, n + np.arange(len(plate))
 
 
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
