@@ -53,6 +53,11 @@ def test_cep_covers_the_ring_boundary_nearest_its_diameter_share():
     assert abs(share - 0.49) < abs(0.40 - 0.49)
 
 
+needs_ccx = pytest.mark.skipif(
+    shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed (Debian package calculix-ccx)"
+)
+
+
 @pytest.fixture(scope="module")
 def partial_cep_template(small_cohort):
     import dataclasses
@@ -243,7 +248,7 @@ def test_hex_ssm_surface_nodes_follow_the_tri_ssm_exactly_and_smooth_inverts_les
     assert n["models_with_inverted"] > s["models_with_inverted"]
 
 
-@pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed (Debian package calculix-ccx)")
+@needs_ccx
 def test_a_partial_cep_unit_under_a_pure_moment_has_no_net_reaction_force(partial_cep_template, tmp_path):
     """A pure moment puts no net force on a model, so the potted lower vertebra's reaction forces sum to zero.
     The rim hexes of a partial CEP touch both potted vertebrae and tie their fibre springs' ends to those bones'
@@ -266,7 +271,7 @@ def test_a_partial_cep_unit_under_a_pure_moment_has_no_net_reaction_force(partia
     assert np.linalg.norm(r.reaction_force_n) < 2.5
 
 
-@pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed (Debian package calculix-ccx)")
+@needs_ccx
 def test_a_partial_cep_lumbar_model_stands_on_a_potted_plate_and_reports_its_whole_reaction(
     partial_cep_template, tmp_path
 ):

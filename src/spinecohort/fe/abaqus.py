@@ -179,11 +179,11 @@ class FEModel:
         """0-based nodes that the embedded ties interpolate from (the fibre springs' host hex corners).
 
         Keep them out of a *RIGID BODY and out of a fixed set: ccx 2.20 accepts a linear *EQUATION on rigid-body
-        nodes but does not follow the rigid body's rotation in it, so the tied fibre ends drift off their hexes
-        as the body turns (a partial-CEP T10-S1 model: the disc under the loaded T10 closed 0.34 mm against 0.13 mm in
-        T10-T12 at the same flexion, and the model stalled at 69 %); on fixed nodes the tie's share of the force reaches the support without
-        showing in its reaction forces (58 N of axial 'reaction' missing in a functional unit).  docs/rom.md
-        "Session 16"."""
+        nodes but does not follow the rigid body's rotation in it, so the tied fibre ends drift as the body turns
+        (a partial-CEP T10-S1 model: the disc under the loaded T10 closed 0.34 mm against 0.13 mm in T10-T12 at the
+        same flexion, and the model stalled at 69 %); on fixed nodes the tie's share of the force leaves ccx's
+        reaction output (58 N of a functional unit's axial reaction missing) and stalled a lumbar model (test-config
+        L5-S1 flexion at 26.5 %).  docs/rom.md "Session 16"."""
         if self.embedded_ties is None or not len(self.embedded_ties[0]):
             return np.zeros(0, np.int64)
         return np.unique(np.asarray(self.embedded_ties[0], dtype=np.int64)[:, 1:])

@@ -329,10 +329,10 @@ def extract_rom_model(
 def potted_plate(
     fe: FEModel, quads: np.ndarray, plate: np.ndarray, cranial: np.ndarray, thickness_mm: float = 1.0
 ) -> tuple[FEModel, np.ndarray]:
-    """`fe` with a layer of hexes (block and set POTTING, cortical bone) under the node layer `plate` (in O-grid
-    order; `quads`: the O-grid's quads; set S1_POTTING), `thickness_mm` along -`cranial`, and the new bottom nodes, which are
-    what a model fixes instead of the plate: a constraint's force on a fixed node is missing from ccx's
-    reaction output, an element's is not (`FEModel.embedded_hosts`)."""
+    """`fe` with a layer of cortical-bone hexes (block POTTING, set S1_POTTING) `thickness_mm` thick along -`cranial`
+    under the node layer `plate` (in O-grid order; `quads`: the O-grid's quads), and its new bottom nodes, which a
+    model fixes instead of the plate: a tie's force on a fixed node leaves ccx's reaction output and stalls the
+    solve, an element's does not (`FEModel.embedded_hosts`)."""
     n = len(fe.nodes)
     base = fe.nodes[plate] - thickness_mm * np.asarray(cranial, dtype=np.float64)
     conn = np.concatenate([n + quads, plate[quads]], axis=1)  # bottom face, then top: the template's hex order
