@@ -146,6 +146,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--rim-stiffness", type=float, default=500.0, help="N/mm per rim strut once engaged")
     ap.add_argument("--drop-ligaments", default="", help="comma-separated ligament groups to leave out, e.g. ITL")
+    ap.add_argument("--rim-d1", type=float, default=None, help="D1 (1/MPa) of the D_<disc>_RIM sets' ground substance only")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--analyse-only", action="store_true", help="read OUT's .dat of an earlier (or running) solve")
     args = ap.parse_intermixed_args(argv)
@@ -222,6 +223,17 @@ def main(argv=None) -> int:
         facets=mats.facets,
         ligament_groups=tuple(g for g in mats.ligaments if g not in args.drop_ligaments.split(",")),
     )
+    if args.rim_d1 is not None:  # a probe: the rim insertion's own volume response (docs/rom.md "Session 16")
+        import dataclasses as dc
+
+        from spinecohort.fe.abaqus import NeoHooke
+        from spinecohort.mesh.template import RIM_TISSUE
+
+        fe = model.fe
+        fe.sections[:] = [
+            dc.replace(sec, material="AF_RIM") if sec.elset.endswith("_" + RIM_TISSUE) else sec for sec in fe.sections
+        ]
+        fe.materials.append(NeoHooke("AF_RIM", mats.annulus_c10_mpa, args.rim_d1))
     if args.rim_contact is not None:
         add_rim_contact(model, template, args.rim_contact, args.rim_stiffness)
     args.out.mkdir(parents=True, exist_ok=True)
