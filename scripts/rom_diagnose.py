@@ -157,7 +157,7 @@ def main(argv=None) -> int:
     from spinecohort.fe.calculix import CalculixError, parse_dat, run_ccx
     from spinecohort.fe.export import materials_from_config, read_deck_points
     from spinecohort.layout import Layout
-    from spinecohort.mesh.template import HexTemplate
+    from spinecohort.mesh.template import RIM_TISSUE, HexTemplate
     from spinecohort.rom.deck import rom_deck_text
     from spinecohort.rom.run import Settings
 
@@ -173,8 +173,6 @@ def main(argv=None) -> int:
         template, moved = relabel_cep(template, args.cep_fraction)
         print(f"CEP fraction {args.cep_fraction}: cep_ring {template.grid.cep_ring}, {len(moved)} hexes -> annulus")
     if args.no_rim_fibres and not len(moved):  # a template built with a partial CEP: its D_<disc>_RIM sets
-        from spinecohort.mesh.template import RIM_TISSUE
-
         rims = [v for k, v in template.elsets.items() if k.endswith("_" + RIM_TISSUE)]
         moved = np.unique(np.concatenate(rims)) if rims else moved
     if args.no_rim_fibres and len(moved):
@@ -227,7 +225,6 @@ def main(argv=None) -> int:
         import dataclasses as dc
 
         from spinecohort.fe.abaqus import NeoHooke
-        from spinecohort.mesh.template import RIM_TISSUE
 
         fe = model.fe
         fe.sections[:] = [
