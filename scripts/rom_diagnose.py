@@ -5,6 +5,7 @@ the fibre and ligament springs by their strain at the last converged load fracti
     .venv/bin/python scripts/rom_diagnose.py OUT --segment T10-S1 --case flexion [--cep-fraction 0.7]
         [--no-rim-fibres] [--rim-c3d8] [--rim-contact 0.3 --rim-stiffness 2000] [--drop-ligaments ITL]
         [--correction-tolerance 2] [--analyse-only] [fe.annulus.fibres.angle_deg=46 ...]
+        [--guided] [--free-top-mm 4] [--fibre-toe 0.02] [--rim-d1 0.05]   (session 16-17 probes, docs/rom.md)
 
 --cep-fraction relabels a whole-layer-CEP template's cartilage-endplate layers (no node moves, so the model
 deck's coordinates stay valid): the hexes outside the cartilage join their disc's annulus set, fibre springs and
@@ -14,8 +15,8 @@ without fibre springs (session 14's rim, which cuts the fibres off the bone: doc
 sessions 14-15's question (docs/rom.md): why the T10-S1 model stalls with the annulus reaching the bony rim.  Prints
 the status, the last converged load fraction, the fixed nodes' net reaction force (~0 under a pure moment), the
 hexes with the smallest corner-Jacobian ratio (deformed / reference; < 0: inverted) per element block, the most stretched and shortened springs, every contact strut's state
-(open, in its rounded corner, closed) and the nodes of ccx's last largest residuals and corrections (where Newton
-cycles).
+(open, in its rounded corner, closed), each segment's rotation and the nodes of ccx's last largest residuals and
+corrections (where Newton cycles).
 """
 
 from __future__ import annotations
@@ -147,6 +148,11 @@ def main(argv=None) -> int:
     ap.add_argument("--rim-stiffness", type=float, default=500.0, help="N/mm per rim strut once engaged")
     ap.add_argument("--drop-ligaments", default="", help="comma-separated ligament groups to leave out, e.g. ITL")
     ap.add_argument("--rim-d1", type=float, default=None, help="D1 (1/MPa) of the D_<disc>_RIM sets' ground substance only")
+    ap.add_argument(
+        "--free-top-mm", type=float, default=None, help="leave the loaded top's nodes this close (mm) above its inferior endplate out of its rigid body"
+    )
+    ap.add_argument("--guided", action="store_true", help="hold the top's rotation across the load's axis")
+    ap.add_argument("--fibre-toe", type=float, default=None, help="fibre springs C1 at slack: a smoothstep toe to this strain")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--analyse-only", action="store_true", help="read OUT's .dat of an earlier (or running) solve")
     args = ap.parse_intermixed_args(argv)
@@ -159,6 +165,7 @@ def main(argv=None) -> int:
     from spinecohort.layout import Layout
     from spinecohort.mesh.template import RIM_TISSUE, HexTemplate
     from spinecohort.rom.deck import rom_deck_text
+    from spinecohort.rom.kinematics import segment_rotations_deg
     from spinecohort.rom.run import Settings
 
     cfg = yaml.safe_load(args.config.read_text())
@@ -207,6 +214,16 @@ def main(argv=None) -> int:
             return mask
 
         export.disc_hexes = disc_but_rim
+    if args.fibre_toe is not None:  # a probe: fibre springs whose slope rises from 0 over a toe (C1 at slack)
+        import spinecohort.fe.fibres as fibres
+
+        def toe_table(k1_mpa, k2, force_scale_mm2, length_mm, toe=args.fibre_toe):
+            strains = np.unique(np.concatenate([np.linspace(0.0, toe, 9), fibres.TABLE_STRAINS]))
+            x = np.clip(strains / toe, 0.0, 1.0)
+            force = fibres.fibre_force_n(1.0 + strains, k1_mpa, k2, force_scale_mm2) * (3 * x**2 - 2 * x**3)
+            return ((0.0, -float(length_mm)),) + tuple((float(f), float(e * length_mm)) for f, e in zip(force, strains))
+
+        fibres.fibre_table = toe_table
     mats = materials_from_config(cfg["fe"])
     top, bottom = args.segment.split("-")
     model = submodel.extract_rom_model(
@@ -221,6 +238,17 @@ def main(argv=None) -> int:
         facets=mats.facets,
         ligament_groups=tuple(g for g in mats.ligaments if g not in args.drop_ligaments.split(",")),
     )
+    if args.free_top_mm is not None:  # a probe: the loaded top potted only above its inferior endplate's bone
+        hosts = model.fe.embedded_hosts()
+        rb = model.rigid_nodes[top]
+        axis = model.frames[top][:, 2]
+        base = model.fe.nodes[np.intersect1d(model.endplate_nodes[top], hosts)] @ axis if len(hosts) else None
+        if base is None or not len(base):
+            raise SystemExit("--free-top-mm: the loaded top carries no fibre-tie hosts")
+        in_hexes = np.isin(rb, model.fe.element_blocks["HEXES"][1])  # the arch's anchors stay rigid (no trusses)
+        free = (model.fe.nodes[rb] @ axis < base.mean() + args.free_top_mm) & in_hexes
+        model.rigid_nodes[top] = rb[~free]
+        print(f"loaded top {top}: {free.sum()} nodes within {args.free_top_mm} mm of its inferior endplate left deformable")
     if args.rim_d1 is not None:  # a probe: the rim insertion's own volume response (docs/rom.md "Session 16")
         import dataclasses as dc
 
@@ -237,6 +265,8 @@ def main(argv=None) -> int:
     kw = settings.deck_kw()
     if args.correction_tolerance is not None:
         kw["correction_tolerance"] = args.correction_tolerance
+    if args.guided:  # run_case's fifth attempt: the top turns about the load's axis only
+        kw["guided"] = True
     text = rom_deck_text(model, args.case, settings.moment_nmm, **kw)
     text = text.replace("*END STEP", "*NODE PRINT, NSET=NALL\nU\n*END STEP")
     deck = args.out / f"diag_{args.case}.inp"
@@ -259,6 +289,9 @@ def main(argv=None) -> int:
     u = np.zeros_like(model.fe.nodes)
     u[np.asarray(last.node_ids, int) - 1] = last.values
     x0, x1 = model.fe.nodes, model.fe.nodes + u
+    # where the motion goes: each segment's rotation (lateral, anterior, cranial deg) at the last converged load
+    for (up, lo), r in segment_rotations_deg(model, dict(enumerate(u))).items():
+        print(f"segment {up}-{lo}: rotation {np.round(r, 2)} deg")
     first = 0
     for name, (etype, conn) in model.fe.element_blocks.items():
         if etype.startswith("C3D"):

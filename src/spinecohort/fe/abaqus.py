@@ -89,13 +89,32 @@ class MooneyRivlin:
     d1_per_mpa: float
 
 
+#: the volumetric terms a NeoHooke material can carry (see NeoHooke)
+VOLUMETRIC_TERMS = ("quadratic", "logarithmic")
+#: Arruda-Boyce locking stretch that makes its shear response the Neo-Hooke one: the first correction to
+#: mu (I1 - 3) / 2 is mu (I1^2 - 9) / (20 lm^2), < 1e-4 of it for the stretches of a disc (I1 < 5)
+NEO_HOOKE_LOCKING_STRETCH = 100.0
+
+
 @dataclass(frozen=True)
 class NeoHooke:
-    """Neo-Hooke hyperelastic material (*HYPERELASTIC, NEO HOOKE): C10 in MPa, D1 in 1/MPa (> 0, see MooneyRivlin)."""
+    """Neo-Hooke hyperelastic material: C10 in MPa, D1 in 1/MPa (> 0, see MooneyRivlin).
+
+    volumetric: "quadratic" (*HYPERELASTIC, NEO HOOKE): U_vol = (J - 1)^2 / D1, whose pressure stays finite
+    (2 / D1) as J -> 0, so a hex squeezed to half its volume has lost most of its bulk resistance;
+    "logarithmic": U_vol = ((J^2 - 1)/2 - ln J) / D1, the same initial bulk modulus 2 / D1 and shear modulus
+    2 C10, with a barrier (p -> -inf as J -> 0).  Abaqus and ccx 2.20 carry that term only in their
+    Arruda-Boyce law, so it is written as *HYPERELASTIC, ARRUDA-BOYCE with mu = 2 C10 and a locking stretch
+    (NEO_HOOKE_LOCKING_STRETCH) at which its shear response is the Neo-Hooke one."""
 
     name: str
     c10_mpa: float
     d1_per_mpa: float
+    volumetric: str = "quadratic"
+
+    def __post_init__(self):
+        if self.volumetric not in VOLUMETRIC_TERMS:
+            raise ValueError(f"material {self.name}: volumetric term {self.volumetric!r}, one of {VOLUMETRIC_TERMS}")
 
 
 @dataclass(frozen=True)
@@ -417,6 +436,11 @@ def _material_text(mat) -> str:
     elif isinstance(mat, MooneyRivlin):
         out += (
             f"*HYPERELASTIC, MOONEY-RIVLIN\n{_fmt_float(mat.c10_mpa)}, {_fmt_float(mat.c01_mpa)}, "
+            f"{_fmt_float(mat.d1_per_mpa)}\n"
+        )
+    elif isinstance(mat, NeoHooke) and mat.volumetric == "logarithmic":
+        out += (
+            f"*HYPERELASTIC, ARRUDA-BOYCE\n{_fmt_float(2.0 * mat.c10_mpa)}, {_fmt_float(NEO_HOOKE_LOCKING_STRETCH)}, "
             f"{_fmt_float(mat.d1_per_mpa)}\n"
         )
     elif isinstance(mat, NeoHooke):

@@ -70,13 +70,15 @@ class FEMaterials:
     nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0111)  # C10, C01 MPa, D1 1/MPa (K 180 MPa)
     annulus_c10_mpa: float = 0.225
     annulus_d1_per_mpa: float = 0.688  # calibrated (config/config.yaml)
+    # the ground substance's volumetric term (abaqus.NeoHooke): "quadratic" (J-1)^2/D1 or "logarithmic" (a barrier)
+    annulus_volumetric: str = "quadratic"
     fibre_k1_mpa: float = 1.51
     # radial k1 gradient (`annulus_ring_k1`): k1 of the innermost / outermost annulus ring (MPa), linear in
     # between; None (both): the uniform fibre_k1_mpa
     fibre_k1_inner_mpa: float | None = None
     fibre_k1_outer_mpa: float | None = None
     fibre_k2: float = 11.0
-    fibre_angle_deg: float = 35.0  # to the transverse plane, +- (two families)
+    fibre_angle_deg: float = 46.0  # to the transverse plane, +- (two families); calibrated (config/config.yaml)
     # "springs": tension-only springs embedded in the annulus hexes (`spinecohort.fe.fibres`), Neo-Hooke ground
     # substance; "elastic_fiber": ccx's built-in ELASTIC_FIBER law (aborts at random fibre states, docs/rom.md)
     fibre_model: str = "springs"
@@ -250,6 +252,7 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         nucleus=(float(np_["c10_mpa"]), float(np_["c01_mpa"]), float(np_["d1_per_mpa"])),
         annulus_c10_mpa=float(af["c10_mpa"]),
         annulus_d1_per_mpa=float(af["d1_per_mpa"]),
+        annulus_volumetric=str(af.get("volumetric", "quadratic")),
         fibre_k1_mpa=float(fib["k1_mpa"]),
         fibre_k1_inner_mpa=_optional_float(fib.get("k1_inner_mpa")),
         fibre_k1_outer_mpa=_optional_float(fib.get("k1_outer_mpa")),
@@ -309,7 +312,7 @@ def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> li
         LinearElastic("CEP", *mats.cep),
         MooneyRivlin("NP", *mats.nucleus),
     ]
-    ground = NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa)
+    ground = NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa, mats.annulus_volumetric)
     if mats.fibre_springs:
         return cards + [ground]
     if template is not None and any(name.endswith("_" + RIM_TISSUE) for name in template.elsets):

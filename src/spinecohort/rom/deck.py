@@ -73,11 +73,13 @@ def rom_deck_text(
     average_force_n: float | None = None,
     correction_tolerance: float = 0.01,
     load_nmm: np.ndarray | None = None,
+    guided: bool = False,
 ) -> str:
     """The complete ccx deck of one load case: model data, rigid bodies, fixation, one static step with
     the pure moment on the top's ROT NODE, node prints of every endplate node, the ROT NODE and the fixed
     nodes' reaction forces.  load_nmm: the ROT NODE's *CLOAD (3,) N.mm instead of the load case's moment
-    vector (`spinecohort.rom.reaction.generalised_load`: the load that exerts that moment at a rotation)."""
+    vector (`spinecohort.rom.reaction.generalised_load`: the load that exerts that moment at a rotation).
+    guided: the top turns about the load's axis only (`pure_moment_text`), `run_case`'s last attempt."""
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
     if model.top not in model.rigid_nodes:
@@ -96,6 +98,7 @@ def rom_deck_text(
         max_increments=max_increments,
         average_force_n=average_force_n,
         correction_tolerance=correction_tolerance,
+        guided=guided,
     )
 
 
@@ -113,12 +116,19 @@ def pure_moment_text(
     max_increments: int = 100,
     average_force_n: float | None = None,
     correction_tolerance: float = 0.01,
+    guided: bool = False,
 ) -> str:
     """What follows a deck's model data for one pure-moment load case: a REF and a ROT NODE per rigid body
     (numbered right after the mesh), the *RIGID BODY of each (0-based node indices), the fixed nodes
     (U1-U3 = 0), one static step with the moment vector `moment_nmm` (3,) N.mm on the ROT NODE of `top`,
     and node prints (U) of that ROT NODE (set ROTTOP: its U1-U3 are the rotations in rad) and of each
-    print set, and the reaction forces (RF) of the fixed nodes (`spinecohort.rom.reaction`).  The step controls are the ones the ROM analyses converge with (docs/rom.md)."""
+    print set, and the reaction forces (RF) of the fixed nodes (`spinecohort.rom.reaction`).  The step controls are the ones the ROM analyses converge with (docs/rom.md).
+
+    guided: the ROT NODE's two rotation components across the moment (the global axes its vector has least
+    of) are held at 0 and the moment acts on the third: the top turns about the load's axis only, and the
+    ROT NODE's reactions (printed, RF of ROTTOP) are the moments that guide it.  Where the free top stops at
+    an out-of-plane bifurcation (docs/rom.md "Session 17") this reaches the load; before it, the path is
+    the free one (T10-S1 flexion: 5,862.0 against 5,861.3 N.mm at 29.48 deg)."""
     n = len(nodes_mm)
     parts = []
     extra, rb, next_id = [], [], n + 1
@@ -164,8 +174,15 @@ def pure_moment_text(
                 f"*CONTROLS, PARAMETERS=FIELD\n0.005, {correction_tolerance!r}, 0.01, {average_force_n!r}, "
                 "0.02, 1e-5, 1e-3, 1e-8\n"
             )
-    parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in range(3)))
+    loaded = range(3)
+    if guided:
+        loaded = [int(np.argmax(np.abs(m)))]
+        held = [k for k in range(3) if k not in loaded]
+        parts.append("*BOUNDARY\n" + "".join(f"{rot_top}, {k + 1}, {k + 1}, 0.0\n" for k in held))
+    parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in loaded))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n" + "".join(f"*NODE PRINT, NSET={name}\nU\n" for name in print_sets))
+    if guided:
+        parts.append("*NODE PRINT, NSET=ROTTOP\nRF\n")
     # the reaction forces of the fixed nodes: the moment the fixation carries (`spinecohort.rom.reaction`)
     parts.append("*NODE PRINT, NSET=FIXED\nRF\n")
     parts.append("*END STEP\n")
