@@ -289,6 +289,10 @@ class Settings:
     max_increment: float = 0.1
     max_increments: int = 200
     lumbar: tuple[str, str] | None = ("T10", "S1")  # (top, bottom), None = no lumbar model
+    #: the lumbar model's top turns about the load's axis only in every attempt (`rom_deck_text(guided=True)`):
+    #: free, the T10-S1 model with the annulus at the bony rim bifurcates out of plane short of the load
+    #: (flexion 92 %, lateral bending 85.6 %) after 20+ min of Newton cycling per case (docs/rom.md "Session 17")
+    lumbar_guided: bool = False
     units: tuple[tuple[str, str], ...] = ()  # functional units (upper, lower vertebra)
     all_effect: bool = True
     threads: int = 2
@@ -310,6 +314,7 @@ class Settings:
             rib_heads=ribs,
             load_cases=tuple(p["load_cases"]),
             lumbar=(lumbar["top"], lumbar["bottom"]) if lumbar["enabled"] else None,
+            lumbar_guided=bool(lumbar.get("guided", False)),
             units=tuple(parse_unit(u) for u in p["units"]),
         )
 
@@ -427,7 +432,7 @@ def solve_model(
             timeout_s=cfg.timeout_s,
             job=name,
             moment_iterations=cfg.moment_iterations,
-            **deck_kw,
+            **{**deck_kw, "guided": cfg.lumbar_guided and mode == "lumbar"},
         )
         log.info(
             "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments; moment carried %s N.mm "
