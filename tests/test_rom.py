@@ -999,7 +999,9 @@ def test_rom_settings_from_the_config():
     assert Settings.from_config({**cfg, "lumbar": {**cfg["lumbar"], "enabled": False}}).lumbar is None
     # the lumbar model's top is guided (docs/rom.md "Session 17"); a config without the key keeps it free
     assert s.lumbar_guided is True
-    assert Settings.from_config({**cfg, "lumbar": {"enabled": True, "top": "T10", "bottom": "S1"}}).lumbar_guided is False
+    assert (
+        Settings.from_config({**cfg, "lumbar": {"enabled": True, "top": "T10", "bottom": "S1"}}).lumbar_guided is False
+    )
 
 
 def test_mode_study_models_are_the_mean_and_each_mode_at_its_extremes():
