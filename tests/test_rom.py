@@ -1189,3 +1189,18 @@ def test_a_guided_top_turns_about_the_load_axis_and_rotates_as_a_free_one(templa
     assert guided.guide_nmm[np.argmax(np.abs(guided.target_nmm))] == 0.0
     deck = (tmp_path / "guided" / "rom_flexion.inp").read_text()
     assert deck.count("*NODE PRINT, NSET=ROTTOP\nRF\n") == 1
+
+
+def test_the_guided_top_is_refused_where_its_load_axis_is_far_from_a_global_axis():
+    # the guided hold acts about global axes, so it is only offered where the load axis is within
+    # GUIDE_MAX_TILT_DEG of one (closed form: a vector in the y-z plane at 39 deg to y is 39 deg off)
+    from spinecohort.rom.run import GUIDE_MAX_TILT_DEG, guide_tilt_deg
+
+    a = np.radians(39.0)
+    assert guide_tilt_deg(np.array([0.0, np.cos(a), -np.sin(a)]) * 7500.0) == pytest.approx(39.0)
+    assert guide_tilt_deg(np.array([-7500.0, 1.8, 21.0])) == pytest.approx(
+        np.degrees(np.arctan(np.hypot(1.8, 21.0) / 7500))
+    )
+    assert (
+        guide_tilt_deg(np.array([0.0, np.cos(a), -np.sin(a)])) > GUIDE_MAX_TILT_DEG > 6.2
+    )  # T2's LB axis out, T10's in
