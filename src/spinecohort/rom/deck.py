@@ -102,6 +102,12 @@ def rom_deck_text(
     )
 
 
+def guided_dof(moment_nmm: np.ndarray) -> int:
+    """The ROT NODE component a guided top is loaded on (0-based): the global axis the moment has most of; the
+    other two are held (`pure_moment_text`)."""
+    return int(np.argmax(np.abs(np.asarray(moment_nmm, dtype=np.float64))))
+
+
 def pure_moment_text(
     nodes_mm: np.ndarray,
     rigid_nodes: dict[str, np.ndarray],
@@ -176,7 +182,7 @@ def pure_moment_text(
             )
     loaded = range(3)
     if guided:
-        loaded = [int(np.argmax(np.abs(m)))]
+        loaded = [guided_dof(m)]
         held = [k for k in range(3) if k not in loaded]
         parts.append("*BOUNDARY\n" + "".join(f"{rot_top}, {k + 1}, {k + 1}, 0.0\n" for k in held))
     parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in loaded))

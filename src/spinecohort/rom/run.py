@@ -17,7 +17,7 @@ import pandas as pd
 
 from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.deck import LOAD_CASES, load_vector_nmm, rom_deck_text
+from spinecohort.rom.deck import LOAD_CASES, guided_dof, load_vector_nmm, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
 from spinecohort.rom.reaction import generalised_load, reactions
 from spinecohort.rom.ribs import RIB_SEGMENTS, RibHeads
@@ -219,7 +219,7 @@ def _guide_moment(rot_node_rf: np.ndarray, load_nmm: np.ndarray) -> np.ndarray:
     internal force (ccx's RF) minus the load's component there (`pure_moment_text` loads only the third)."""
     load = np.asarray(load_nmm, dtype=np.float64)
     guide = np.asarray(rot_node_rf, dtype=np.float64) - load
-    guide[int(np.argmax(np.abs(load)))] = 0.0
+    guide[guided_dof(load)] = 0.0
     return guide
 
 
