@@ -386,6 +386,38 @@ def test_sensitivity_parameters_set_one_leaf_or_scale_every_matched_one():
         with_parameter(cfg, "fe.k3", 1.0)
 
 
+def test_a_sensitivity_variant_is_reused_only_for_the_same_mesh_and_solver_settings(template, tmp_path, monkeypatch):
+    """The sensitivity's cache: a variant is solved again when the mesh or the fe / solver settings change
+    (a stale table would be silently wrong), and not when only the references change (cheap to recompare)."""
+    import spinecohort.rom.sensitivity as sens
+
+    calls = []
+
+    def fake_solve(template, points, rom, workdir, model_id, materials):
+        calls.append(float(points[0, 0]))
+        return pd.DataFrame({"segment": ["L3-L4"], "load_fraction": [1.0]})
+
+    monkeypatch.setattr(sens, "solve_model", fake_solve)
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    cfg = {"fe": cfg["fe"], "rom": cfg["rom"]}
+    pts = template.nodes.copy()
+    sens.solve_variant(template, pts, cfg, tmp_path, "model_x")
+    sens.solve_variant(template, pts, cfg, tmp_path, "model_x")
+    assert len(calls) == 1  # same mesh, same settings: reused
+    cfg["rom"]["references"] = []
+    sens.solve_variant(template, pts, cfg, tmp_path, "model_x")
+    assert len(calls) == 1  # references are compared, not solved
+    moved = pts.copy()
+    moved[0, 0] += 1e-9  # one node, 1 pm: another mesh
+    sens.solve_variant(template, moved, cfg, tmp_path, "model_x")
+    assert len(calls) == 2
+    cfg["fe"]["annulus"]["fibres"]["angle_deg"] = 30.0
+    sens.solve_variant(template, moved, cfg, tmp_path, "model_x")
+    assert len(calls) == 3
+
+
 def test_rom_submodel_of_a_functional_unit(template):
     m = extract_rom_model(template, template.nodes, "L3", "L4")
     n2, nq = len(template.grid.nodes), len(template.grid.quads)

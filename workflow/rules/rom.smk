@@ -2,17 +2,7 @@
 # pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/rom.md); the sensitivity of
 # the compared ROM to the calibrated parameters; the ROM of the mean and of each shape mode at its extremes.
 from spinecohort.rom.modes import mode_models, mode_rom_config
-
-ROM_REPORT_KEYS = (
-    "model",
-    "acceptance_sd",
-    "seed_acceptance_sd",
-    "rib_correction",
-    "references",
-    "sensitivity",
-    "mode_levels",
-    "mode_units",
-)
+from spinecohort.rom.run import solver_config
 
 
 rule rom_model:
@@ -33,7 +23,7 @@ rule rom_model:
     threads: config["rom"]["threads"]
     params:
         # only what the solver reads: editing references, criteria or the sensitivity list reruns nothing
-        rom={k: v for k, v in config["rom"].items() if k not in ROM_REPORT_KEYS},
+        rom=solver_config(config["rom"]),
         fe=config["fe"],
     script:
         "../scripts/rom_model.py"
@@ -69,7 +59,6 @@ rule rom_sensitivity:
     output:
         table=L.rom_sensitivity,
         figure=L.rom_sensitivity_png,
-        runs=directory(L.rom_sensitivity_dir),
     log:
         f"{LOGS}/rom_sensitivity.log",
     benchmark:
@@ -81,6 +70,9 @@ rule rom_sensitivity:
         rom=config["rom"],
         fe=config["fe"],
         model=config["rom"]["model"],
+        # a cache, not an output (Snakemake would empty it before every rerun): each variant's solution is
+        # reused while its mesh and solver configuration are unchanged (rom.sensitivity.variant_key)
+        runs=L.rom_sensitivity_dir,
     script:
         "../scripts/rom_sensitivity.py"
 
@@ -109,7 +101,7 @@ rule rom_mode_model:
         "../../environment.yml"
     threads: config["rom"]["threads"]
     params:
-        rom=mode_rom_config(config["rom"], ROM_REPORT_KEYS),
+        rom=mode_rom_config(config["rom"]),
         fe=config["fe"],
     script:
         "../scripts/rom_model.py"

@@ -14,7 +14,7 @@ with to_file(snakemake.log[0]) as log:
     points = read_deck_points(snakemake.input.deck, template)
     rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
     cfg = {"fe": snakemake.params.fe, "rom": rom}
-    table = sensitivity(template, points, cfg, snakemake.output.runs, snakemake.params.model)
+    table = sensitivity(template, points, cfg, snakemake.params.runs, snakemake.params.model)
     table.to_csv(snakemake.output.table, index=False)
     rom_sensitivity_figure(table, snakemake.output.figure)
     with pd.option_context("display.width", 200):

@@ -16,16 +16,15 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from spinecohort.rom.run import units_only
+from spinecohort.rom.run import solver_config, units_only
 from spinecohort.store.zarr_store import model_id, model_name
 
 
-def mode_rom_config(rom: dict, report_keys=()) -> dict:
+def mode_rom_config(rom: dict) -> dict:
     """The ``rom`` block of a mode-study model: the functional units ``rom.mode_units`` alone (no lumbar
-    model, no ALL run, no rib heads), the solver settings unchanged, the comparison keys (`report_keys`) left
-    out."""
-    kept = {k: v for k, v in rom.items() if k not in report_keys and k != "mode_units"}
-    return units_only(kept, rom["mode_units"])
+    model, no ALL run, no rib heads), the solver settings unchanged, the comparison keys left out
+    (`spinecohort.rom.run.solver_config`)."""
+    return units_only(solver_config(rom), rom["mode_units"])
 
 
 def mode_models(n_modes: int, levels, mode_levels) -> pd.DataFrame:

@@ -294,6 +294,25 @@ def rom_table(model: RomModel, results: list[CaseResult], model_id: str, mode: s
 # one model: every extraction mode and load case
 
 
+#: keys of the ``rom:`` block that only the comparison and the study rules read (not the solver)
+REPORT_KEYS = (
+    "model",
+    "acceptance_sd",
+    "seed_acceptance_sd",
+    "rib_correction",
+    "references",
+    "sensitivity",
+    "mode_levels",
+    "mode_units",
+)
+
+
+def solver_config(rom: dict) -> dict:
+    """The part of a ``rom:`` block the solver reads: what a cached or Snakemake-tracked solution depends on
+    (editing references, criteria or the study lists re-solves nothing)."""
+    return {k: v for k, v in rom.items() if k not in REPORT_KEYS}
+
+
 @dataclass(frozen=True)
 class Settings:
     """The solver part of the ``rom:`` config block (docs/rom.md); the comparison keys (``model``,

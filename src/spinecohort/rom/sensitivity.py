@@ -14,6 +14,7 @@ value(s) instead of values.  Units: degrees, and the units of each parameter.
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import logging
 from pathlib import Path
@@ -24,7 +25,7 @@ import pandas as pd
 from spinecohort.fe.export import materials_from_config
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import orderings, validate_from_config
-from spinecohort.rom.run import solve_model, units_only
+from spinecohort.rom.run import solve_model, solver_config, units_only
 
 log = logging.getLogger(__name__)
 
@@ -71,19 +72,41 @@ def unit_rom_config(rom: dict) -> dict:
     return units_only(rom, rom["sensitivity"]["units"])
 
 
+def mesh_digest(template: HexTemplate, points: np.ndarray) -> str:
+    """sha256 of what the solver reads of the mesh: node coordinates (mm, float64 bytes), element connectivity
+    and every element and node set, so a cached variant is never reused for another template or deck."""
+    h = hashlib.sha256(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+    for a in (template.hexes, template.tris, template.ligaments):
+        h.update(np.ascontiguousarray(a, dtype=np.int64).tobytes())
+    for sets in (template.elsets, template.nsets):
+        for name in sorted(sets):
+            h.update(name.encode() + np.ascontiguousarray(sets[name], dtype=np.int64).tobytes())
+    return h.hexdigest()
+
+
+def variant_key(template: HexTemplate, points: np.ndarray, cfg: dict) -> str:
+    """What one variant's solution depends on: the mesh, the fe block and the solver's part of the rom block
+    (references, criteria and the sensitivity list are left out: editing them re-solves nothing)."""
+    solver_rom = solver_config(unit_rom_config(cfg["rom"]))
+    return json.dumps({"mesh": mesh_digest(template, points), "fe": cfg["fe"], "rom": solver_rom}, sort_keys=True)
+
+
 def solve_variant(
     template: HexTemplate, points: np.ndarray, cfg: dict, workdir: str | Path, model_id: str
 ) -> pd.DataFrame:
     """ROM table of the sensitivity units for one configuration; reused from ``workdir/rom.csv`` when the
-    configuration it was solved with (``workdir/config.json``) is the same."""
+    mesh and the configuration it was solved with (``workdir/config.json``, `variant_key`) are the same."""
     workdir = Path(workdir)
-    rom = unit_rom_config(cfg["rom"])
-    key = json.dumps({"fe": cfg["fe"], "rom": {k: v for k, v in rom.items() if k != "sensitivity"}}, sort_keys=True)
+    key = variant_key(template, points, cfg)
     table_path, key_path = workdir / "rom.csv", workdir / "config.json"
     if table_path.exists() and key_path.exists() and key_path.read_text() == key:
+        log.info("%s: reused (same mesh and configuration)", workdir.name)
         return pd.read_csv(table_path)
-    table = solve_model(template, points, rom, workdir, model_id, materials_from_config(cfg["fe"]))
+    table = solve_model(
+        template, points, unit_rom_config(cfg["rom"]), workdir, model_id, materials_from_config(cfg["fe"])
+    )
     workdir.mkdir(parents=True, exist_ok=True)
+    key_path.unlink(missing_ok=True)  # a kill between the two writes leaves no key: the variant is solved again
     table.to_csv(table_path, index=False)
     key_path.write_text(key)
     return table
