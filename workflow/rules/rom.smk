@@ -70,9 +70,6 @@ rule rom_sensitivity:
         rom=config["rom"],
         fe=config["fe"],
         model=config["rom"]["model"],
-        # a cache, not an output (Snakemake would empty it before every rerun): each variant's solution is
-        # reused while its mesh and solver configuration are unchanged (rom.sensitivity.variant_key)
-        runs=L.rom_sensitivity_dir,
     script:
         "../scripts/rom_sensitivity.py"
 

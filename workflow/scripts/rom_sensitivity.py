@@ -4,6 +4,7 @@ import pandas as pd
 from spinecohort.fe.calculix import find_ccx
 from spinecohort.fe.export import read_deck_points
 from spinecohort.figures import rom_sensitivity_figure
+from spinecohort.layout import Layout
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.sensitivity import sensitivity
@@ -14,7 +15,10 @@ with to_file(snakemake.log[0]) as log:
     points = read_deck_points(snakemake.input.deck, template)
     rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}
     cfg = {"fe": snakemake.params.fe, "rom": rom}
-    table = sensitivity(template, points, cfg, snakemake.params.runs, snakemake.params.model)
+    # the variants' runs are a cache, not an output (Snakemake would empty an output directory before every rerun):
+    # a variant is solved again only when its mesh or solver settings change (rom.sensitivity.variant_key)
+    runs = Layout(snakemake.config["results"]).rom_sensitivity_dir
+    table = sensitivity(template, points, cfg, runs, snakemake.params.model)
     table.to_csv(snakemake.output.table, index=False)
     rom_sensitivity_figure(table, snakemake.output.figure)
     with pd.option_context("display.width", 200):
