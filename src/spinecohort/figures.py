@@ -936,11 +936,19 @@ def rom_sensitivity_figure(sens: pd.DataFrame, path: str | Path) -> Path:
     im = ax.imshow(m.to_numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
     for (i, j), v in np.ndenumerate(m.to_numpy()):
         if np.isfinite(v):
-            ax.text(j, i, f"{v:+.1f}", ha="center", va="center", fontsize=6)
+            colour = "white" if abs(v) > 0.6 * lim else "black"  # legible on the darkest cells
+            ax.text(j, i, f"{v:+.1f}", ha="center", va="center", fontsize=6, color=colour)
+        else:  # not compared: that case stopped short of the full moment (the table's min_load_fraction)
+            ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, facecolor="0.85", hatch="///", edgecolor="0.6"))
+            ax.text(j, i, "short", ha="center", va="center", fontsize=6, color="0.25")
     ax.set_xticks(range(m.shape[1]), m.columns, rotation=60, ha="right", fontsize=7)
     ax.set_yticks(range(m.shape[0]), m.index, fontsize=7)
     fig.colorbar(im, ax=ax, label="change of ROM from the calibrated model (deg)")
-    ax.set_title("ROM sensitivity: each parameter at the ends of its published range (functional units, 7.5 N.m)")
+    ax.set_title(
+        "ROM sensitivity: each parameter at the ends of its published range (functional units, 7.5 N.m;"
+        " hatched: case short of the load, not compared)",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
