@@ -86,8 +86,11 @@ def mesh_digest(template: HexTemplate, points: np.ndarray) -> str:
 
 def variant_key(template: HexTemplate, points: np.ndarray, cfg: dict) -> str:
     """What one variant's solution depends on: the mesh, the fe block and the solver's part of the rom block
-    (references, criteria and the sensitivity list are left out: editing them re-solves nothing)."""
-    solver_rom = solver_config(unit_rom_config(cfg["rom"]))
+    (references, criteria, the sensitivity list and the thread count are left out: changing them re-solves
+    nothing)."""
+    # threads change the time, not the answer (ccx gave the same ROM to the last digit at 1 and 2 threads,
+    # docs/rom.md "Sensitivity")
+    solver_rom = {k: v for k, v in solver_config(unit_rom_config(cfg["rom"])).items() if k != "threads"}
     return json.dumps({"mesh": mesh_digest(template, points), "fe": cfg["fe"], "rom": solver_rom}, sort_keys=True)
 
 
