@@ -387,8 +387,9 @@ def test_sensitivity_parameters_set_one_leaf_or_scale_every_matched_one():
 
 
 def test_a_sensitivity_variant_is_reused_only_for_the_same_mesh_and_solver_settings(template, tmp_path, monkeypatch):
-    """The sensitivity's cache: a variant is solved again when the mesh or the fe / solver settings change
-    (a stale table would be silently wrong), and not when only the references change (cheap to recompare)."""
+    """The sensitivity's cache: a variant is solved again when the mesh, the fe / solver settings or the solver's
+    code change (a stale table would be silently wrong), and not when only the references or the thread count
+    change (cheap to recompare; ccx gives the same answer)."""
     import spinecohort.rom.sensitivity as sens
 
     calls = []
@@ -417,6 +418,9 @@ def test_a_sensitivity_variant_is_reused_only_for_the_same_mesh_and_solver_setti
     cfg["fe"]["annulus"]["fibres"]["angle_deg"] = 30.0
     sens.solve_variant(template, moved, cfg, tmp_path, "model_x")
     assert len(calls) == 3
+    monkeypatch.setattr(sens, "solver_code_digest", lambda: "another deck writer")
+    sens.solve_variant(template, moved, cfg, tmp_path, "model_x")
+    assert len(calls) == 4  # a code change of the solver path: solved again
 
 
 def test_rom_submodel_of_a_functional_unit(template):

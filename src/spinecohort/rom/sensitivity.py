@@ -84,14 +84,34 @@ def mesh_digest(template: HexTemplate, points: np.ndarray) -> str:
     return h.hexdigest()
 
 
+#: modules of the ROM stage that only compare or gather (their edits leave every solution valid)
+_NOT_SOLVER = {"compare.py", "sensitivity.py", "modes.py"}
+
+
+def solver_code_digest() -> str:
+    """sha256 of the source the solutions come from: every module of ``spinecohort.fe`` and of
+    ``spinecohort.rom`` except the comparison and gathering ones, so a cached variant never outlives a change
+    of the deck writer, the materials or the solver driver."""
+    h = hashlib.sha256()
+    pkg = Path(__file__).resolve().parents[1]
+    for f in sorted([*(pkg / "fe").glob("*.py"), *(pkg / "rom").glob("*.py")]):
+        if f.parent.name == "rom" and f.name in _NOT_SOLVER:
+            continue
+        h.update(f"{f.parent.name}/{f.name}".encode() + f.read_bytes())
+    return h.hexdigest()
+
+
 def variant_key(template: HexTemplate, points: np.ndarray, cfg: dict) -> str:
-    """What one variant's solution depends on: the mesh, the fe block and the solver's part of the rom block
-    (references, criteria, the sensitivity list and the thread count are left out: changing them re-solves
-    nothing)."""
+    """What one variant's solution depends on: the solver's code, the mesh, the fe block and the solver's part of
+    the rom block (references, criteria, the sensitivity list and the thread count are left out: changing them
+    re-solves nothing)."""
     # threads change the time, not the answer (ccx gave the same ROM to the last digit at 1 and 2 threads,
     # docs/rom.md "Sensitivity")
     solver_rom = {k: v for k, v in solver_config(unit_rom_config(cfg["rom"])).items() if k != "threads"}
-    return json.dumps({"mesh": mesh_digest(template, points), "fe": cfg["fe"], "rom": solver_rom}, sort_keys=True)
+    return json.dumps(
+        {"code": solver_code_digest(), "mesh": mesh_digest(template, points), "fe": cfg["fe"], "rom": solver_rom},
+        sort_keys=True,
+    )
 
 
 def solve_variant(
