@@ -104,8 +104,23 @@ def rom_deck_text(
 
 def guided_dof(moment_nmm: np.ndarray) -> int:
     """The ROT NODE component a guided top is loaded on (0-based): the global axis the moment has most of; the
-    other two are held (`pure_moment_text`)."""
+    other two follow it by `guide_equations` (`pure_moment_text`)."""
     return int(np.argmax(np.abs(np.asarray(moment_nmm, dtype=np.float64))))
+
+
+def guide_equations(moment_nmm: np.ndarray) -> tuple[int, list[tuple[int, float]], float]:
+    """How a guided top turns about the moment's axis a = m / |m| only: its ROT NODE's rotation vector theta
+    stays along a, i.e. theta_h = (a_h / a_l) theta_l for the two components h other than l = `guided_dof`.
+    Returns (l, [(h, -a_h / a_l), ...] the coefficients of theta_l in the equations theta_h - ... = 0, the
+    generalised force on theta_l (N.mm) that does the work of m: m . dtheta = (m . a / a_l) dtheta_l =
+    |m|^2 / m_l).  About an axis at any angle to the global ones (a rotation about a fixed axis is conjugate to
+    the moment about it, so no large-rotation correction is needed)."""
+    m = np.asarray(moment_nmm, dtype=np.float64)
+    if not np.all(np.isfinite(m)) or not np.linalg.norm(m) > 0:
+        raise ValueError(f"a guided top needs a finite, non-zero moment, got {m}")
+    loaded = guided_dof(m)
+    held = [(h, float(-m[h] / m[loaded])) for h in range(3) if h != loaded]
+    return loaded, held, float(m @ m / m[loaded])
 
 
 def pure_moment_text(
@@ -130,9 +145,10 @@ def pure_moment_text(
     and node prints (U) of that ROT NODE (set ROTTOP: its U1-U3 are the rotations in rad) and of each
     print set, and the reaction forces (RF) of the fixed nodes (`spinecohort.rom.reaction`).  The step controls are the ones the ROM analyses converge with (docs/rom.md).
 
-    guided: the ROT NODE's two rotation components across the moment (the global axes its vector has least
-    of) are held at 0 and the moment acts on the third: the top turns about the load's axis only, and the
-    ROT NODE's reactions (printed, RF of ROTTOP) are the moments that guide it.  Where the free top stops at
+    guided: the ROT NODE's rotation vector is tied to the moment's axis by two *EQUATIONs and the moment acts
+    on its remaining component (`guide_equations`): the top turns about the load's axis only, at any angle to
+    the global axes; the moment that guides it is what the fixed base carries beyond the load
+    (`spinecohort.rom.run`).  Where the free top stops at
     an out-of-plane bifurcation (docs/rom.md "Session 17") this reaches the load; before it, the path is
     the free one (T10-S1 flexion: 5,862.0 against 5,861.3 N.mm at 29.48 deg)."""
     n = len(nodes_mm)
@@ -160,6 +176,21 @@ def pure_moment_text(
     parts.append(f"*NSET, NSET=ROTTOP\n{rot_top}\n")
     parts.append("*BOUNDARY\nFIXED, 1, 3\n")
     m = np.asarray(moment_nmm, dtype=np.float64)
+    if guided:
+        # the rotation vector stays along the moment's axis (`guide_equations`); a component the axis has
+        # none of is held by a boundary condition (ccx needs a non-zero coefficient per equation term); ccx
+        # reads a number of at most 20 characters, so 12 significant digits
+        loaded, held, load_l = guide_equations(m)
+        eqs = [(h, c) for h, c in held if abs(c) > 1e-12]
+        if eqs:
+            parts.append(
+                "*EQUATION\n"
+                + "".join(f"2\n{rot_top}, {h + 1}, 1.0, {rot_top}, {loaded + 1}, {c:.12g}\n" for h, c in eqs)
+            )
+        if len(eqs) < len(held):
+            parts.append(
+                "*BOUNDARY\n" + "".join(f"{rot_top}, {h + 1}, {h + 1}, 0.0\n" for h, c in held if abs(c) <= 1e-12)
+            )
     step = f"*STEP, NLGEOM, INC={max_increments}\n" if nlgeom else "*STEP\n"
     parts.append(step + "*STATIC\n")
     if nlgeom:
@@ -180,15 +211,11 @@ def pure_moment_text(
                 f"*CONTROLS, PARAMETERS=FIELD\n0.005, {correction_tolerance!r}, 0.01, {average_force_n!r}, "
                 "0.02, 1e-5, 1e-3, 1e-8\n"
             )
-    loaded = range(3)
     if guided:
-        loaded = [guided_dof(m)]
-        held = [k for k in range(3) if k not in loaded]
-        parts.append("*BOUNDARY\n" + "".join(f"{rot_top}, {k + 1}, {k + 1}, 0.0\n" for k in held))
-    parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in loaded))
+        parts.append(f"*CLOAD\n{rot_top}, {loaded + 1}, {load_l:.6f}\n")
+    else:
+        parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in range(3)))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n" + "".join(f"*NODE PRINT, NSET={name}\nU\n" for name in print_sets))
-    if guided:
-        parts.append("*NODE PRINT, NSET=ROTTOP\nRF\n")
     # the reaction forces of the fixed nodes: the moment the fixation carries (`spinecohort.rom.reaction`)
     parts.append("*NODE PRINT, NSET=FIXED\nRF\n")
     parts.append("*END STEP\n")

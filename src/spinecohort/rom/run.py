@@ -17,7 +17,7 @@ import pandas as pd
 
 from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.deck import LOAD_CASES, guided_dof, load_vector_nmm, rom_deck_text
+from spinecohort.rom.deck import LOAD_CASES, load_vector_nmm, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
 from spinecohort.rom.reaction import generalised_load, reactions
 from spinecohort.rom.ribs import RIB_SEGMENTS, RibHeads
@@ -100,8 +100,7 @@ def run_case(
     # both reached (docs/rom.md).  Third: smaller increments with the relaxed C_n (session 11: with the C3D20R
     # nucleus the lumbar extension's first 5 % increment aborts in ccx's fibre law, so the relaxed attempt never
     # got past it, and smaller strict increments cycled at 98.5 %).  Fourth: strict with smaller increments.
-    # Fifth, guided (only where the load axis is within GUIDE_MAX_TILT_DEG of a global axis): the third's settings
-    # with the top turning about the load's axis only.  With the annulus at
+    # Fifth, guided: the third's settings with the top turning about the load's axis only (`guide_equations`).  With the annulus at
     # the bony rim the T10-S1 flexion reaches an out-of-plane bifurcation at 92 % of the load (the free top's
     # lateral and axial rotations go singular; moment-rotation curve still stiffening); held, the path is the
     # free one to 0.01 % before it and reaches the load (docs/rom.md "Session 17"); its holding moments are
@@ -123,16 +122,7 @@ def run_case(
         name = job if iteration == 0 else f"{job}_m{iteration}"
         deck = workdir / f"{name}.inp"
         guided_kw = {**retry_kw, "correction_tolerance": 2.0, "guided": True}
-        attempts = [deck_kw, relaxed_kw, {**retry_kw, "correction_tolerance": 2.0}, retry_kw]
-        tilt = guide_tilt_deg(target)
-        if tilt <= GUIDE_MAX_TILT_DEG:
-            attempts.append(guided_kw)
-        elif deck_kw.get("guided"):
-            raise RomError(
-                f"{case} of the {model.top} top: its load axis is {tilt:.1f} deg from the nearest global axis, and the "
-                f"guided top is held about global axes (at most {GUIDE_MAX_TILT_DEG} deg off); leave rom.lumbar.guided "
-                "off for this top"
-            )
+        attempts = [deck_kw, relaxed_kw, {**retry_kw, "correction_tolerance": 2.0}, retry_kw, guided_kw]
         for attempt, kw in enumerate(attempts, start=1):
             deck.write_text(rom_deck_text(model, case, moment_nmm, load_nmm=load, **kw))
             t0 = time.perf_counter()
@@ -160,7 +150,6 @@ def run_case(
             if converged:
                 break
         rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP" and b.quantity.startswith("displ")]
-        guide_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP" and b.quantity.startswith("force")]
         if moment_iterations:
             _log_iteration(model, case, deck, res.node_prints, coords, iteration, load, target)
         if not converged or not rot_prints or iteration == moment_iterations:
@@ -195,32 +184,18 @@ def run_case(
         np.asarray(load if load is not None else target, dtype=np.float64),
         np.asarray(target, dtype=np.float64),
         iteration,
-        _guide_moment(guide_prints[-1].values[0], load if load is not None else target)
-        if guide_prints
-        else np.zeros(3),
+        guide_moment(rf.carried_nmm(), target) if rf and kw.get("guided") else np.zeros(3),
     )
 
 
-#: the guided top is held about the two global axes across its load (`pure_moment_text`), so only where the load
-#: axis is this close to a global axis (T10's in the lumbar model: 0.2 deg F/E, 6.2 deg LB and AR, the measured
-#: 0.01-2 % of docs/rom.md "Session 17"; T2's lateral-bending axis is 39 deg off, where holding about global axes
-#: forces a coupled rotation: the T2-T3 unit guided lost 3.5 deg of lateral bending)
-GUIDE_MAX_TILT_DEG = 10.0
-
-
-def guide_tilt_deg(load_nmm: np.ndarray) -> float:
-    """Angle (deg) between a load vector and the global axis nearest to it."""
-    m = np.abs(np.asarray(load_nmm, dtype=np.float64))
-    return float(np.degrees(np.arccos(np.clip(m.max() / np.linalg.norm(m), -1.0, 1.0))))
-
-
-def _guide_moment(rot_node_rf: np.ndarray, load_nmm: np.ndarray) -> np.ndarray:
-    """The guided top's moment beyond the load case's (N.mm, global): on each held rotation component its
-    internal force (ccx's RF) minus the load's component there (`pure_moment_text` loads only the third)."""
-    load = np.asarray(load_nmm, dtype=np.float64)
-    guide = np.asarray(rot_node_rf, dtype=np.float64) - load
-    guide[guided_dof(load)] = 0.0
-    return guide
+def guide_moment(carried_nmm: np.ndarray, load_nmm: np.ndarray) -> np.ndarray:
+    """The moment that guides a guided top (N.mm, global): what the fixed base carries beyond the load, across
+    the load's axis.  Pure moments: base + load + guide = 0, so guide = carried - load; its part along the
+    axis is the elements' own moment leak (docs/moment_check.md), not guidance, and is left out."""
+    m = np.asarray(load_nmm, dtype=np.float64)
+    axis = m / np.linalg.norm(m)
+    extra = np.asarray(carried_nmm, dtype=np.float64) - m
+    return extra - (extra @ axis) * axis
 
 
 def _reaction_at(coords: dict, prints, time: float):
