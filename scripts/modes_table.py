@@ -4,7 +4,8 @@
 
 One row per model (the mean, then each mode at its weights): full-range ROM (deg) of each unit's own
 segment, F/E = flexion + extension, LB = left + right, AR = left + right; * = a case short of the full moment
-(its ROM at the load reached).
+(its ROM at the load reached); g = a case solved by the guided attempt (the top turned about the load's axis
+only; the moment that held it is the table's guide_moment_nmm).
 """
 
 import sys
@@ -28,7 +29,8 @@ for m in models.itertuples():
         for cases in PLANES.values():
             r = rows.loc[[(u, c) for c in cases]]
             short = "*" if (r["load_fraction"] < 1.0 - 1e-6).any() else ""
-            cells.append(f"{r['rom_deg'].sum():.1f}{short}")
+            guided = "g" if (r["guide_moment_nmm"] > 0).any() else ""
+            cells.append(f"{r['rom_deg'].sum():.1f}{short}{guided}")
     mode = 0 if m.weight_sd == 0 else m.shape_mode
     w = "0" if m.weight_sd == 0 else f"{m.weight_sd:+g}".replace("-", "−")
     print(f"| {m.model} | {mode} | {w} | " + " | ".join(cells) + " |")
