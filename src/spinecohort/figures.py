@@ -926,6 +926,9 @@ def rom_sensitivity_figure(sens: pd.DataFrame, path: str | Path) -> Path:
     of its published range (rows), `spinecohort.rom.sensitivity.sensitivity` table, as an annotated heat map."""
     d = sens[sens["parameter"] != "baseline"].copy()
     d["row"] = d["parameter"] + " " + d["level"] + " (" + d["value"].map("{:g}".format) + ")"
+    if "max_guide_moment_nmm" in d:  # a variant with a guided case: its values include a constrained one
+        guided = d["max_guide_moment_nmm"] > 0
+        d.loc[guided, "row"] += " [guided " + d.loc[guided, "max_guide_moment_nmm"].map("{:.0f}".format) + " N.mm]"
     d["col"] = d["segment"] + " " + d["motion"].str.replace("_", " ") + " (" + d["side"] + ")"
     order_cols = list(dict.fromkeys(d["col"]))
     # a comparison without value in every variant (a case short of the full load) stays as an empty column

@@ -139,7 +139,8 @@ def sensitivity(
     template: HexTemplate, points: np.ndarray, cfg: dict, workdir: str | Path, model_id: str
 ) -> pd.DataFrame:
     """One row per variant (baseline, each parameter low/high) and compared ROM: our value, its change from
-    the baseline (deg), in_range (calibration criterion), the load fraction reached; plus the lumbar
+    the baseline (deg), in_range (calibration criterion), the load fraction reached (least over the variant's
+    cases), the largest moment that guided a case (N.mm; 0 when every case was free); plus the lumbar
     orderings (flexion - extension, lateral - axial, deg) of the L units as rows with motion
     ``flexion_minus_extension`` / ``lateral_minus_axial``."""
     rows = []
@@ -154,6 +155,8 @@ def sensitivity(
             base_table = table
         val = validate_from_config(table, unit_rom_config(vcfg["rom"]))
         frac = float(table["load_fraction"].min())
+        # a case solved by the guided attempt is a constrained value: how much moment held it (0: all free)
+        guide = float(table["guide_moment_nmm"].max()) if "guide_moment_nmm" in table else 0.0
         for r in val.itertuples():
             rows.append(
                 {
@@ -166,6 +169,7 @@ def sensitivity(
                     "rom_deg": r.model_deg,
                     "in_range": r.in_range,
                     "min_load_fraction": frac,
+                    "max_guide_moment_nmm": guide,
                 }
             )
         for o in orderings(table, mode="unit").itertuples():
@@ -184,6 +188,7 @@ def sensitivity(
                         "rom_deg": v,
                         "in_range": bool(v > 0),
                         "min_load_fraction": frac,
+                        "max_guide_moment_nmm": guide,
                     }
                 )
         log.info("sensitivity %s %s (%s): %d rows, min load fraction %.2f", name, level, value, len(val), frac)
