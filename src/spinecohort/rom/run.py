@@ -62,8 +62,8 @@ class CaseResult:
     cload_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))  # on the ROT NODE
     target_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))  # the load case's
     moment_iterations: int = 0  # solves after the first with the *CLOAD corrected (`run_case`)
-    #: the guided attempt's reaction moments (N.mm, global) holding the top's rotation across the load's axis;
-    #: zero for a free top (`rom_deck_text(guided=True)`)
+    #: the moment (N.mm, global) that held a guided top's rotation on the load's axis: what the base carried
+    #: beyond the load, across the axis (`guide_moment`); zero for a free top
     guide_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
 
@@ -100,11 +100,11 @@ def run_case(
     # both reached (docs/rom.md).  Third: smaller increments with the relaxed C_n (session 11: with the C3D20R
     # nucleus the lumbar extension's first 5 % increment aborts in ccx's fibre law, so the relaxed attempt never
     # got past it, and smaller strict increments cycled at 98.5 %).  Fourth: strict with smaller increments.
-    # Fifth, guided: the third's settings with the top turning about the load's axis only (`guide_equations`).  With the annulus at
-    # the bony rim the T10-S1 flexion reaches an out-of-plane bifurcation at 92 % of the load (the free top's
-    # lateral and axial rotations go singular; moment-rotation curve still stiffening); held, the path is the
-    # free one to 0.01 % before it and reaches the load (docs/rom.md "Session 17"); its holding moments are
-    # reported (`CaseResult.guide_nmm`, the ROM table's guide_moment_nmm).
+    # Fifth, guided: the third's settings with the top turning about the load's axis only (`guide_equations`).
+    # With the annulus at the bony rim the T10-S1 flexion reaches an out-of-plane bifurcation at 92 % of the
+    # load (the free top's lateral and axial rotations go singular; moment-rotation curve still stiffening);
+    # held, the path is the free one to 0.01 % before it and reaches the load (docs/rom.md "Session 17"); the
+    # moment that held it is reported (`CaseResult.guide_nmm`, the ROM table's guide_moment_nmm).
     # Then keep the ROM at the last converged load fraction, flagged, instead of losing the other load cases.
     relaxed_kw = {**deck_kw, "correction_tolerance": 2.0}
     retry_kw = {
@@ -152,7 +152,8 @@ def run_case(
         rot_prints = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP" and b.quantity.startswith("displ")]
         if moment_iterations:
             _log_iteration(model, case, deck, res.node_prints, coords, iteration, load, target)
-        if not converged or not rot_prints or iteration == moment_iterations:
+        # a guided top turns about a fixed axis, to which the moment about it is conjugate: nothing to correct
+        if not converged or not rot_prints or iteration == moment_iterations or kw.get("guided"):
             break
         # the *CLOAD is the generalised force conjugate to the ROT NODE's rotation vector: the load that
         # exerts the moment `target` at the rotation reached (a fixed point: the next solve turns a little
