@@ -102,15 +102,10 @@ def rom_deck_text(
     )
 
 
-def guided_dof(moment_nmm: np.ndarray) -> int:
-    """The ROT NODE component a guided top is loaded on (0-based): the global axis the moment has most of; the
-    other two follow it by `guide_equations` (`pure_moment_text`)."""
-    return int(np.argmax(np.abs(np.asarray(moment_nmm, dtype=np.float64))))
-
-
 def guide_equations(moment_nmm: np.ndarray) -> tuple[int, list[tuple[int, float]], float]:
     """How a guided top turns about the moment's axis a = m / |m| only: its ROT NODE's rotation vector theta
-    stays along a, i.e. theta_h = (a_h / a_l) theta_l for the two components h other than l = `guided_dof`.
+    stays along a, i.e. theta_h = (a_h / a_l) theta_l for the two components h other than l, the global axis
+    the moment has most of (the loaded one).
     Returns (l, [(h, -a_h / a_l), ...] the coefficients of theta_l in the equations theta_h - ... = 0, the
     generalised force on theta_l (N.mm) that does the work of m: m . dtheta = (m . a / a_l) dtheta_l =
     |m|^2 / m_l).  About an axis at any angle to the global ones (a rotation about a fixed axis is conjugate to
@@ -118,7 +113,7 @@ def guide_equations(moment_nmm: np.ndarray) -> tuple[int, list[tuple[int, float]
     m = np.asarray(moment_nmm, dtype=np.float64)
     if not np.all(np.isfinite(m)) or not np.linalg.norm(m) > 0:
         raise ValueError(f"a guided top needs a finite, non-zero moment, got {m}")
-    loaded = guided_dof(m)
+    loaded = int(np.argmax(np.abs(m)))
     held = [(h, float(-m[h] / m[loaded])) for h in range(3) if h != loaded]
     return loaded, held, float(m @ m / m[loaded])
 
@@ -181,16 +176,18 @@ def pure_moment_text(
         # none of is held by a boundary condition (ccx needs a non-zero coefficient per equation term); ccx
         # reads a number of at most 20 characters, so 12 significant digits
         loaded, held, load_l = guide_equations(m)
-        eqs = [(h, c) for h, c in held if abs(c) > 1e-12]
-        if eqs:
+        tied = [(h, c) for h, c in held if abs(c) > 1e-12]
+        fixed = [h for h, c in held if abs(c) <= 1e-12]
+        if tied:
             parts.append(
                 "*EQUATION\n"
-                + "".join(f"2\n{rot_top}, {h + 1}, 1.0, {rot_top}, {loaded + 1}, {c:.12g}\n" for h, c in eqs)
+                + "".join(f"2\n{rot_top}, {h + 1}, 1.0, {rot_top}, {loaded + 1}, {c:.12g}\n" for h, c in tied)
             )
-        if len(eqs) < len(held):
-            parts.append(
-                "*BOUNDARY\n" + "".join(f"{rot_top}, {h + 1}, {h + 1}, 0.0\n" for h, c in held if abs(c) <= 1e-12)
-            )
+        if fixed:
+            parts.append("*BOUNDARY\n" + "".join(f"{rot_top}, {h + 1}, {h + 1}, 0.0\n" for h in fixed))
+        cload = {loaded: load_l}
+    else:
+        cload = dict(enumerate(m))
     step = f"*STEP, NLGEOM, INC={max_increments}\n" if nlgeom else "*STEP\n"
     parts.append(step + "*STATIC\n")
     if nlgeom:
@@ -211,10 +208,7 @@ def pure_moment_text(
                 f"*CONTROLS, PARAMETERS=FIELD\n0.005, {correction_tolerance!r}, 0.01, {average_force_n!r}, "
                 "0.02, 1e-5, 1e-3, 1e-8\n"
             )
-    if guided:
-        parts.append(f"*CLOAD\n{rot_top}, {loaded + 1}, {load_l:.6f}\n")
-    else:
-        parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {m[k]:.6f}\n" for k in range(3)))
+    parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {v:.6f}\n" for k, v in cload.items()))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n" + "".join(f"*NODE PRINT, NSET={name}\nU\n" for name in print_sets))
     # the reaction forces of the fixed nodes: the moment the fixation carries (`spinecohort.rom.reaction`)
     parts.append("*NODE PRINT, NSET=FIXED\nRF\n")

@@ -14,6 +14,7 @@ value(s) instead of values.  Units: degrees, and the units of each parameter.
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import json
 import logging
@@ -88,6 +89,7 @@ def mesh_digest(template: HexTemplate, points: np.ndarray) -> str:
 _NOT_SOLVER = {"compare.py", "sensitivity.py", "modes.py"}
 
 
+@functools.cache  # the source of a running process does not change: read once, not per variant
 def solver_code_digest() -> str:
     """sha256 of the source the solutions come from: every module of ``spinecohort.fe`` and of
     ``spinecohort.rom`` except the comparison and gathering ones, so a cached variant never outlives a change
@@ -156,7 +158,7 @@ def sensitivity(
         val = validate_from_config(table, unit_rom_config(vcfg["rom"]))
         frac = float(table["load_fraction"].min())
         # a case solved by the guided attempt is a constrained value: how much moment held it (0: all free)
-        guide = float(table["guide_moment_nmm"].max()) if "guide_moment_nmm" in table else 0.0
+        guide = float(table["guide_moment_nmm"].max())
         for r in val.itertuples():
             rows.append(
                 {
