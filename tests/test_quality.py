@@ -237,6 +237,30 @@ def test_one_pass_model_quality_equals_the_separate_check_and_table3_metrics():
     assert np.array_equal(t3["pct_errors_AF"].to_numpy(), got["pct_errors_AF"])
 
 
+def test_model_quality_face_angle_thresholds_per_model_across_vector_lanes():
+    """Nine sheared cubes (x += z cot(theta)) in one batch, more than one group of ``q.LANES`` models: face angles
+    theta and 180 - theta, scaled Jacobian sin(theta) (> 0.2 here) and edge ratio 1 / sin(theta) in closed form.
+    theta just below 20 deg gives a max face angle just above 160 deg (a warning and a > 160 count), just above
+    20 deg neither: each model's lane decides for itself, and the tests made on cosines match the degrees."""
+    theta = np.radians([19.9, 20.1, 19.99, 20.01, 19.5, 20.5, 19.999, 20.3, 19.0])
+    batch = np.repeat(UNIT_CUBE[None], len(theta), axis=0)
+    batch[:, :, 0] += batch[:, :, 2] / np.tan(theta)[:, None]
+    got = q.model_quality(batch, ONE_HEX, np.array(["AF"]))
+    over = np.degrees(np.pi - theta) > 160.0
+    assert over.tolist() == [True, False, True, False, True, False, True, False, True]
+    assert got["pct_max_face_angle_gt_160_AF"].tolist() == (100.0 * over).tolist()
+    assert got["pct_warnings_AF"].tolist() == (100.0 * over).tolist()
+    assert np.allclose(got["min_sj"], np.sin(theta), rtol=1e-14)
+    assert got["invalid"].tolist() == [0] * 9
+    assert got["pct_edge_ratio_gt_10_AF"].tolist() == [0.0] * 9
+    # a box stretched along x: edge ratio = the stretch, counted above 10 (compared as squared lengths)
+    boxes = np.repeat(UNIT_CUBE[None], 2, axis=0) * np.array([[[9.99, 1, 1]], [[10.01, 1, 1]]])
+    assert q.model_quality(boxes, ONE_HEX, np.array(["AF"]))["pct_edge_ratio_gt_10_AF"].tolist() == [0.0, 100.0]
+    # a model alone gives what it gives in the batch (padding lanes do not leak into results)
+    alone = q.model_quality(batch[8:], ONE_HEX, np.array(["AF"]))
+    assert all(np.array_equal(alone[k], got[k][8:]) for k in got)
+
+
 def test_degenerate_element_reported_like_verdict():
     P = UNIT_CUBE.copy()
     P[1] = P[0]  # zero-length edge

@@ -670,143 +670,186 @@ def full_metrics_batch_nb(Xb, conn):
     return out
 
 
-#: per (model, part) sums and minima of ``model_quality_nb``: its count columns, then its minimum columns
-_COUNTS = ("n_errors", "n_warnings", "n_edge_ratio_gt_10", "n_max_face_angle_gt_160")
-_MINIMA = ("min_scaled_jacobian", "nodal_jacobian_ratio_min", "gauss_jacobian_ratio_min")
-
-
 _G = float(_GAUSS_1D[0])  # Gauss abscissa 0.5 - 0.5 / sqrt(3) on [0, 1]; the other is 1 - _G
 
+# The 12 edges as parametric derivatives: the u-edges (node p -> q along u) at (v, w) = (0,0), (1,0), (0,1), (1,1),
+# the v-edges at (u, w) and the w-edges at (u, v) in the same order.  dX/du at (u, v, w) is the bilinear blend of
+# the four u-edges; the principal axes of the centre Jacobian are their sums.
+_PARAM_EDGES = np.array(
+    [[0, 1], [3, 2], [4, 5], [7, 6], [0, 3], [1, 2], [4, 7], [5, 6], [0, 4], [1, 5], [3, 7], [2, 6]], dtype=np.int64
+)
 
-@numba.njit(cache=True, inline="always")
-def _bilinear_nb(f, e, k, d):
-    """f[0] e[k] + f[1] e[k+1] + f[2] e[k+2] + f[3] e[k+3] in coordinate d (the four parallel edges k..k+3)."""
-    return f[0] * e[k, d] + f[1] * e[k + 1, d] + f[2] * e[k + 2, d] + f[3] * e[k + 3, d]
 
-
-@numba.njit(cache=True)
-def _element_quality_nb(P, e, out):
-    """The Table 3 metrics of one hex P (8, 3), each corner's edge vectors formed once -> out[0:6] = scaled J,
-    nodal J ratio, Gauss J ratio, edge ratio, min and max face angle (deg).  e: (12, 3) scratch.
-
-    A corner's three edge vectors give its Jacobian (scaled J, nodal ratio), their squared lengths (the 12
-    edges, each seen twice: edge ratio) and their pairwise angles (the 24 quad-face corner angles).  Same
-    operands and order as ``_element_min_sj_nb`` / ``full_metrics_nb``, so these are bit-identical; the
-    Gauss-point Jacobians use the 12 edge vectors (dX/du at (u, v, w) is the bilinear blend of the four
-    u-edges), which is the same trilinear map in fewer operations (agrees with ``full_metrics_nb`` to
-    ~1e-15 relative).
-    """
-    sj = VERDICT_DBL_MAX
-    degenerate = False
-    amin, amax = np.inf, -np.inf
-    lmin, lmax = np.inf, 0.0
-    cmin, cmax = np.inf, -np.inf
+def _corner_edge_table() -> tuple[np.ndarray, np.ndarray]:
+    """For corner i and its neighbours (a, b, c) of ``CORNER_NEIGHBOURS``: which parametric edge P_a - P_i is and
+    its sign (+1 if the edge runs i -> a).  Negating is exact, so the corner's determinant, lengths and dot
+    products from signed edges are bit-identical to those of P_a - P_i."""
+    edge, sign = np.empty((8, 3), np.int64), np.empty((8, 3))
     for i in range(8):
-        a, b, c = _CN[i, 0], _CN[i, 1], _CN[i, 2]
-        a0, a1, a2 = P[a, 0] - P[i, 0], P[a, 1] - P[i, 1], P[a, 2] - P[i, 2]
-        b0, b1, b2 = P[b, 0] - P[i, 0], P[b, 1] - P[i, 1], P[b, 2] - P[i, 2]
-        c0, c1, c2 = P[c, 0] - P[i, 0], P[c, 1] - P[i, 1], P[c, 2] - P[i, 2]
-        la = a0 * a0 + a1 * a1 + a2 * a2
-        lb = b0 * b0 + b1 * b1 + b2 * b2
-        lc = c0 * c0 + c1 * c1 + c2 * c2
-        al = _det3_nb(a0, a1, a2, b0, b1, b2, c0, c1, c2)
-        amin = min(amin, al)
-        amax = max(amax, al)
-        lmin = min(lmin, la, lb, lc)
-        lmax = max(lmax, la, lb, lc)
-        if la <= VERDICT_DBL_MIN or lb <= VERDICT_DBL_MIN or lc <= VERDICT_DBL_MIN:
-            degenerate = True
-        elif not degenerate:
-            sj = min(sj, al / np.sqrt(la * lb * lc))
-        # the corner's three face angles: every pair of its edges spans one of its three faces
-        for cs in (
-            (a0 * b0 + a1 * b1 + a2 * b2) / np.sqrt(la * lb),
-            (b0 * c0 + b1 * c1 + b2 * c2) / np.sqrt(lb * lc),
-            (c0 * a0 + c1 * a1 + c2 * a2) / np.sqrt(lc * la),
-        ):
-            cmax = max(cmax, cs)  # arccos is monotone: only the extreme cosines need it
-            cmin = min(cmin, cs)
-    ok, centre = _centre_sj_nb(P)
-    if degenerate or not ok:
-        out[0] = VERDICT_DBL_MAX
-    else:
-        out[0] = min(sj, centre)
-    out[1] = -VERDICT_DBL_MAX if amax <= VERDICT_DBL_MIN else amin / amax
-    # u-edges (v, w) = (0,0), (1,0), (0,1), (1,1); v-edges (u, w) in the same order; w-edges (u, v) likewise
-    for d in range(3):
-        e[0, d], e[1, d], e[2, d], e[3, d] = P[1, d] - P[0, d], P[2, d] - P[3, d], P[5, d] - P[4, d], P[6, d] - P[7, d]
-        e[4, d], e[5, d], e[6, d], e[7, d] = P[3, d] - P[0, d], P[2, d] - P[1, d], P[7, d] - P[4, d], P[6, d] - P[5, d]
-        e[8, d], e[9, d], e[10, d], e[11, d] = (
-            P[4, d] - P[0, d],
-            P[5, d] - P[1, d],
-            P[7, d] - P[3, d],
-            P[6, d] - P[2, d],
-        )
-    gmin, gmax = np.inf, -np.inf
-    for iu in range(2):
-        u = _G if iu == 0 else 1.0 - _G
-        for iv in range(2):
-            v = _G if iv == 0 else 1.0 - _G
-            for iw in range(2):
-                w = _G if iw == 0 else 1.0 - _G
-                fu = ((1 - v) * (1 - w), v * (1 - w), (1 - v) * w, v * w)
-                fv = ((1 - u) * (1 - w), u * (1 - w), (1 - u) * w, u * w)
-                fw = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
-                g = _det3_nb(
-                    _bilinear_nb(fu, e, 0, 0),
-                    _bilinear_nb(fu, e, 0, 1),
-                    _bilinear_nb(fu, e, 0, 2),
-                    _bilinear_nb(fv, e, 4, 0),
-                    _bilinear_nb(fv, e, 4, 1),
-                    _bilinear_nb(fv, e, 4, 2),
-                    _bilinear_nb(fw, e, 8, 0),
-                    _bilinear_nb(fw, e, 8, 1),
-                    _bilinear_nb(fw, e, 8, 2),
-                )
-                gmin = min(gmin, g)
-                gmax = max(gmax, g)
-    out[2] = -VERDICT_DBL_MAX if gmax <= VERDICT_DBL_MIN else gmin / gmax
-    out[3] = np.sqrt(lmax / lmin) if lmin > 0 else np.inf
-    out[4] = np.degrees(np.arccos(min(1.0, cmax)))
-    out[5] = np.degrees(np.arccos(max(-1.0, cmin)))
+        for j, a in enumerate(CORNER_NEIGHBOURS[i]):
+            k = next(k for k, (p, q) in enumerate(_PARAM_EDGES) if {p, q} == {i, a})
+            edge[i, j], sign[i, j] = k, (1.0 if _PARAM_EDGES[k, 0] == i else -1.0)
+    return edge, sign
 
 
-@numba.njit(cache=True)
-def model_quality_nb(Xb, conn, part, n_parts, warn_sj, warn_lo_deg, warn_hi_deg):
-    """Check + Table 3 of a batch in one pass: per model b and part p of Xb (B, n_nodes, 3), conn (E, 8),
-    part (E,) codes 0..n_parts-1 -> (counts (B, P, 4) int64, minima (B, P, 3) float64).
+_CORNER_EDGE, _CORNER_SIGN = _corner_edge_table()
+#: models per vector lane group of ``model_quality_lanes_nb``: batches are padded to a multiple (AVX-512: 8 doubles)
+LANES = 8
 
-    counts: errors (scaled J <= 0), warnings (not an error and scaled J < warn_sj or a face angle outside
-    [warn_lo_deg, warn_hi_deg]), edge ratio > 10, max face angle > 160 deg; minima: scaled J, nodal and
-    Gauss Jacobian ratio.  Nothing per element is kept: memory is O(B P), whatever E.
+
+@numba.njit(cache=True, boundscheck=False, error_model="numpy")
+def model_quality_lanes_nb(XT, conn, part, n_parts, warn_sj, cos_warn_lo, cos_warn_hi, cos_160):
+    """Check + Table 3 of a batch in one pass, vectorised across the models: XT (n_nodes, 3, B) mm (the batch
+    transposed, so that one node coordinate of all B models is contiguous), conn (E, 8), part (E,) codes
+    0..n_parts-1 -> (counts (n_parts, 4, B) int64, minima (n_parts, 3, B) float64).
+
+    counts: errors (scaled J <= 0), warnings (not an error and scaled J < warn_sj or a face angle below the
+    lower or above the upper warning angle), edge ratio > 10, max face angle > 160 deg; minima: scaled J,
+    nodal and Gauss Jacobian ratio.  Face angles are compared as cosines (arccos is decreasing: an angle
+    below 10 deg is a cosine above cos 10 deg), squared so that no square root is taken: d / sqrt(la lb) > c
+    with d > 0 is d^2 > c^2 la lb.  The edge ratio likewise: sqrt(lmax / lmin) > 10 is lmax > 100 lmin.
+
+    Every loop over the models is innermost and free of calls and branches, so LLVM turns it into vector
+    instructions (error_model="numpy": no zero-division checks); element by element, the scaled J and the
+    nodal ratio use the operands and order of ``full_metrics_nb``'s corner loop (bit-identical), the Gauss
+    ratio the bilinear blends of the 12 edge vectors (the same trilinear map, round-off ~1e-15).  Memory:
+    per-model scratch rows of B doubles; the element loop is the outer loop.
     """
-    B, E = Xb.shape[0], conn.shape[0]
-    counts = np.zeros((B, n_parts, 4), dtype=np.int64)
-    minima = np.full((B, n_parts, 3), np.inf)
-    P = np.empty((8, 3))
-    edges = np.empty((12, 3))
-    m = np.empty(6)
-    for b in range(B):
-        X = Xb[b]
-        for e in range(E):
-            for k in range(8):
+    B = XT.shape[2]
+    E = conn.shape[0]
+    counts = np.zeros((n_parts, 4, B), dtype=np.int64)
+    minima = np.full((n_parts, 3, B), np.inf)
+    ed = np.empty((12, 3, B))  # the element's 12 parametric edge vectors, mm
+    L = np.empty((12, B))  # their squared lengths, mm^2
+    gx = np.empty((3, 4, 3, B))  # dX/du, dX/dv, dX/dw at the four Gauss (v, w), (u, w), (u, v) pairs
+    sj, amin, amax, gmin, gmax = np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B)
+    degenerate, lo, hi = np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, np.bool_)
+    over160, long_edge = np.empty(B, np.bool_), np.empty(B, np.bool_)
+    lo2, hi2, c1602 = cos_warn_lo * cos_warn_lo, cos_warn_hi * cos_warn_hi, cos_160 * cos_160
+    for e in range(E):
+        for k in range(12):
+            ni, nj = conn[e, _PARAM_EDGES[k, 0]], conn[e, _PARAM_EDGES[k, 1]]
+            for b in range(B):
+                x = XT[nj, 0, b] - XT[ni, 0, b]
+                y = XT[nj, 1, b] - XT[ni, 1, b]
+                z = XT[nj, 2, b] - XT[ni, 2, b]
+                ed[k, 0, b], ed[k, 1, b], ed[k, 2, b] = x, y, z
+                L[k, b] = x * x + y * y + z * z
+        for b in range(B):
+            sj[b], amin[b], amax[b] = VERDICT_DBL_MAX, np.inf, -np.inf
+            degenerate[b], lo[b], hi[b], over160[b] = False, False, False, False
+        for i in range(8):
+            ka, kb, kc = _CORNER_EDGE[i, 0], _CORNER_EDGE[i, 1], _CORNER_EDGE[i, 2]
+            sa, sb, sc = _CORNER_SIGN[i, 0], _CORNER_SIGN[i, 1], _CORNER_SIGN[i, 2]
+            sabc, sab, sbc, sca = sa * sb * sc, sa * sb, sb * sc, sc * sa
+            for b in range(B):
+                a0, a1, a2 = ed[ka, 0, b], ed[ka, 1, b], ed[ka, 2, b]
+                b0, b1, b2 = ed[kb, 0, b], ed[kb, 1, b], ed[kb, 2, b]
+                c0, c1, c2 = ed[kc, 0, b], ed[kc, 1, b], ed[kc, 2, b]
+                la, lb, lc = L[ka, b], L[kb, b], L[kc, b]
+                al = sabc * _det3_nb(a0, a1, a2, b0, b1, b2, c0, c1, c2)
+                amin[b] = al if al < amin[b] else amin[b]
+                amax[b] = al if al > amax[b] else amax[b]
+                degenerate[b] |= (la <= VERDICT_DBL_MIN) | (lb <= VERDICT_DBL_MIN) | (lc <= VERDICT_DBL_MIN)
+                s = al / np.sqrt(la * lb * lc)
+                sj[b] = s if s < sj[b] else sj[b]
+                # the corner's three face angles: every pair of its edges spans one of its three faces
+                dab = sab * (a0 * b0 + a1 * b1 + a2 * b2)
+                dbc = sbc * (b0 * c0 + b1 * c1 + b2 * c2)
+                dca = sca * (c0 * a0 + c1 * a1 + c2 * a2)
+                qab, qbc, qca = dab * dab, dbc * dbc, dca * dca
+                pab, pbc, pca = la * lb, lb * lc, lc * la
+                lo[b] |= (
+                    ((dab > 0) & (qab > lo2 * pab)) | ((dbc > 0) & (qbc > lo2 * pbc)) | ((dca > 0) & (qca > lo2 * pca))
+                )
+                hi[b] |= (
+                    ((dab < 0) & (qab > hi2 * pab)) | ((dbc < 0) & (qbc > hi2 * pbc)) | ((dca < 0) & (qca > hi2 * pca))
+                )
+                over160[b] |= (
+                    ((dab < 0) & (qab > c1602 * pab))
+                    | ((dbc < 0) & (qbc > c1602 * pbc))
+                    | ((dca < 0) & (qca > c1602 * pca))
+                )
+        for direction in range(3):
+            k0 = 4 * direction
+            for q in range(4):
+                s, t = (_G if q % 2 == 0 else 1.0 - _G), (_G if q < 2 else 1.0 - _G)
+                f0, f1, f2, f3 = (1 - s) * (1 - t), s * (1 - t), (1 - s) * t, s * t
                 for d in range(3):
-                    P[k, d] = X[conn[e, k], d]
-            _element_quality_nb(P, edges, m)
-            p = part[e]
-            error = m[0] <= 0
-            if error:
-                counts[b, p, 0] += 1
-            elif m[0] < warn_sj or m[4] < warn_lo_deg or m[5] > warn_hi_deg:
-                counts[b, p, 1] += 1
-            if m[3] > 10:
-                counts[b, p, 2] += 1
-            if m[5] > 160:
-                counts[b, p, 3] += 1
-            minima[b, p, 0] = min(minima[b, p, 0], m[0])
-            minima[b, p, 1] = min(minima[b, p, 1], m[1])
-            minima[b, p, 2] = min(minima[b, p, 2], m[2])
+                    for b in range(B):
+                        gx[direction, q, d, b] = (
+                            f0 * ed[k0, d, b] + f1 * ed[k0 + 1, d, b] + f2 * ed[k0 + 2, d, b] + f3 * ed[k0 + 3, d, b]
+                        )
+        for b in range(B):
+            gmin[b], gmax[b] = np.inf, -np.inf
+        for iu in range(2):
+            for iv in range(2):
+                for iw in range(2):
+                    qu, qv, qw = iv + 2 * iw, iu + 2 * iw, iu + 2 * iv
+                    for b in range(B):
+                        g = _det3_nb(
+                            gx[0, qu, 0, b], gx[0, qu, 1, b], gx[0, qu, 2, b],
+                            gx[1, qv, 0, b], gx[1, qv, 1, b], gx[1, qv, 2, b],
+                            gx[2, qw, 0, b], gx[2, qw, 1, b], gx[2, qw, 2, b],
+                        )  # fmt: skip
+                        gmin[b] = g if g < gmin[b] else gmin[b]
+                        gmax[b] = g if g > gmax[b] else gmax[b]
+        for b in range(B):
+            # principal axes: the four parallel edges summed in _centre_sj_nb's order
+            x10 = ((ed[0, 0, b] + ed[1, 0, b]) + ed[2, 0, b]) + ed[3, 0, b]
+            x11 = ((ed[0, 1, b] + ed[1, 1, b]) + ed[2, 1, b]) + ed[3, 1, b]
+            x12 = ((ed[0, 2, b] + ed[1, 2, b]) + ed[2, 2, b]) + ed[3, 2, b]
+            x20 = ((ed[4, 0, b] + ed[5, 0, b]) + ed[6, 0, b]) + ed[7, 0, b]
+            x21 = ((ed[4, 1, b] + ed[5, 1, b]) + ed[6, 1, b]) + ed[7, 1, b]
+            x22 = ((ed[4, 2, b] + ed[5, 2, b]) + ed[6, 2, b]) + ed[7, 2, b]
+            x30 = ((ed[8, 0, b] + ed[9, 0, b]) + ed[11, 0, b]) + ed[10, 0, b]
+            x31 = ((ed[8, 1, b] + ed[9, 1, b]) + ed[11, 1, b]) + ed[10, 1, b]
+            x32 = ((ed[8, 2, b] + ed[9, 2, b]) + ed[11, 2, b]) + ed[10, 2, b]
+            l1 = x10 * x10 + x11 * x11 + x12 * x12
+            l2 = x20 * x20 + x21 * x21 + x22 * x22
+            l3 = x30 * x30 + x31 * x31 + x32 * x32
+            centre = _det3_nb(x10, x11, x12, x20, x21, x22, x30, x31, x32) / np.sqrt(l1 * l2 * l3)
+            bad = degenerate[b] | (l1 <= VERDICT_DBL_MIN) | (l2 <= VERDICT_DBL_MIN) | (l3 <= VERDICT_DBL_MIN)
+            least = sj[b] if sj[b] < centre else centre
+            sj[b] = VERDICT_DBL_MAX if bad else least
+        # separate short loops: one loop writing many arrays needs more run-time alias checks than LLVM makes,
+        # and stays scalar
+        for b in range(B):
+            amin[b] = -VERDICT_DBL_MAX if amax[b] <= VERDICT_DBL_MIN else amin[b] / amax[b]
+        for b in range(B):
+            gmin[b] = -VERDICT_DBL_MAX if gmax[b] <= VERDICT_DBL_MIN else gmin[b] / gmax[b]
+        for b in range(B):
+            lmin, lmax = L[0, b], L[0, b]
+            for k in range(1, 12):
+                lmin = L[k, b] if L[k, b] < lmin else lmin
+                lmax = L[k, b] if L[k, b] > lmax else lmax
+            long_edge[b] = lmax > 100.0 * lmin
+        p = part[e]
+        for b in range(B):
+            error = sj[b] <= 0
+            counts[p, 0, b] += error
+            counts[p, 1, b] += ~error & ((sj[b] < warn_sj) | lo[b] | hi[b])
+        for b in range(B):
+            counts[p, 2, b] += long_edge[b]
+        for b in range(B):
+            counts[p, 3, b] += over160[b]
+        for b in range(B):
+            minima[p, 0, b] = sj[b] if sj[b] < minima[p, 0, b] else minima[p, 0, b]
+        for b in range(B):
+            minima[p, 1, b] = amin[b] if amin[b] < minima[p, 1, b] else minima[p, 1, b]
+        for b in range(B):
+            minima[p, 2, b] = gmin[b] if gmin[b] < minima[p, 2, b] else minima[p, 2, b]
     return counts, minima
+
+
+def _lanes_of(x: np.ndarray, n_nodes: int) -> np.ndarray:
+    """The first n_nodes rows of the batch x (B, N, 3) as ``model_quality_lanes_nb`` reads them: (n_nodes, 3, B')
+    float64, B' = B rounded up to whole ``LANES`` (padded with copies of the last model)."""
+    b = x.shape[0]
+    xt = np.empty((n_nodes, 3, -(-b // LANES) * LANES))
+    xt[:, :, :b] = x[:, :n_nodes].transpose(1, 2, 0)
+    xt[:, :, b:] = xt[:, :, b - 1 : b]
+    return xt
 
 
 def part_codes(part_of_element: np.ndarray) -> tuple[np.ndarray, list, np.ndarray, np.ndarray]:
@@ -827,7 +870,7 @@ def part_codes(part_of_element: np.ndarray) -> tuple[np.ndarray, list, np.ndarra
 def model_quality(
     points: np.ndarray, hexes: np.ndarray, part_of_element: np.ndarray, codes: tuple | None = None
 ) -> dict[str, np.ndarray]:
-    """The shard pass's per-model quality in one kernel pass (``model_quality_nb``): the check (scaled Jacobian
+    """The shard pass's per-model quality in one kernel pass (``model_quality_lanes_nb``): the check (scaled Jacobian
     per model and tissue) and the seed's Table 3 columns, from one evaluation of each hex's corner Jacobians.
 
     points (B, n_nodes, 3) mm (any float dtype, any layout: the kernel reads the node rows of ``hexes``);
@@ -845,9 +888,18 @@ def model_quality(
         raise ValueError(f"points must have shape (B, n_nodes, 3), got {x.shape}")
     if conn.size and (conn.min() < 0 or conn.max() >= x.shape[1]):  # the kernel does not bounds-check
         raise ValueError(f"hexes reference nodes outside 0..{x.shape[1] - 1}")
-    if x.dtype != np.float64:
-        x = x.astype(np.float64)
-    counts, minima = model_quality_nb(x, conn, code, len(labels), WARNING_MIN_SCALED_JACOBIAN, *WARNING_FACE_ANGLE_DEG)
+    lo_deg, hi_deg = WARNING_FACE_ANGLE_DEG
+    counts, minima = model_quality_lanes_nb(
+        _lanes_of(x, int(conn.max()) + 1 if conn.size else 0),
+        conn,
+        code,
+        len(labels),
+        WARNING_MIN_SCALED_JACOBIAN,
+        np.cos(np.radians(lo_deg)),
+        np.cos(np.radians(hi_deg)),
+        np.cos(np.radians(160.0)),
+    )
+    counts, minima = counts[:, :, : len(x)].transpose(2, 0, 1), minima[:, :, : len(x)].transpose(2, 0, 1)
     out = {"min_sj": minima[:, :, 0].min(axis=1), "invalid": counts[:, :, 0].sum(axis=1)}
     for j in rank:  # sorted label order
         out[f"min_sj_{labels[j]}"] = minima[:, j, 0]
