@@ -16,6 +16,7 @@ import pytest
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
 from spinecohort.measure.spinopelvic import (
     UNITS,
+    _plane_fits,
     cobb_angle,
     fit_planes,
     fit_spheres,
@@ -337,6 +338,24 @@ def test_batch_equals_single():
         single = measure(pts, lm, age=[50, 65, 80][k])
         pd.testing.assert_frame_equal(df.iloc[[k]].reset_index(drop=True), single, atol=1e-9, rtol=0)
     assert df.PT.tolist() == pytest.approx([20, -5, 32], abs=1e-6)
+
+
+def test_batched_plane_fits_are_exact_far_from_the_origin():
+    """The shard pass's plane fits (all patches of all models in one pass) on patches 0.5 m from the model's
+    origin vertex: square corners (+-10, +-10) mm at z = +-h sign(xy) have a TLS plane z = 0 and out-of-plane RMS
+    exactly h.  h = 1e-5 mm is the flatness of the synthetic endplates; raw moments about the far origin
+    would lose it to cancellation (~1e-5 mm error), moments about each patch's first vertex keep it to 1e-9."""
+    h = np.array([1e-5, 1.0])
+    square = np.array([[10, 10, 1], [-10, -10, 1], [10, -10, -1], [-10, 10, -1.0]])
+    far, near = square * [1, 1, h[0]] + [150.0, -80.0, 480.0], square * [1, 1, h[1]] + [-40.0, 20.0, 60.0]
+    batch = np.repeat(np.concatenate([[[0.0, 0.0, 0.0]], far, near])[None], 2, axis=0)
+    batch[1] += [1000.0, 2000.0, -3000.0]  # translation: the same planes
+    centre, normal, rms = _plane_fits(
+        batch, {"far": np.arange(1, 5), "near": np.arange(5, 9)}, 0, np.array([0, 0, 1.0])
+    )
+    assert np.allclose(rms, h[None], rtol=1e-4, atol=1e-9)
+    assert np.allclose(normal, [0, 0, 1], atol=1e-12)
+    assert np.allclose(centre[:, 0], [150.0, -80.0, 480.0], atol=1e-9)  # relative to the origin vertex (row 0)
 
 
 def test_fits_on_known_shapes():

@@ -5,24 +5,27 @@ Millimetres and degrees throughout.
 
 Pipeline per batch (all array operations over the B models; only the 17 levels / 17 discs are looped):
 
-1. Endplate planes: total-least-squares fit of every endplate patch (batched ``eigh`` of the 3x3
-   covariances, built from raw moments by two BLAS matmuls); normals oriented cranially (n.V > 0); the
-   vertex mean is the endplate centre because the patches are sampled centrally symmetric.
-2. Femoral heads: algebraic sphere fit (batched normal equations on mean-centred points).
+1. Endplate planes: total-least-squares fit of every endplate patch: the raw moments of all 35 patches of all
+   models summed in one numba pass over the batch (each patch about its own first vertex: out-of-plane RMS
+   exact to ~1e-9 mm), then one batched ``eigh`` of the 3x3 covariances; normals oriented cranially
+   (n.V > 0); the vertex mean is the endplate centre because the patches are sampled centrally symmetric.
+2. Femoral heads: algebraic sphere fit (batched normal equations on mean-centred points, moments in one pass).
 3. Patient frame (§1.1/§7.3): V = the explicit vertical, Lh = horizontal part of cR - cL, A = V x Lh.  If the
    pubic symphysis lies posterior to the S1 centre, A and Lh are flipped (left/right labels swapped), which makes
    every output invariant to axial rotation, translation and label swaps.
 4. Signed in-plane angles ``sag(v) = atan2(v.A, v.V)`` and ``cor(v) = atan2(v.Lh, v.V)``, so the identities
    PI = PT + SS, TPA = PT + T1SPI and GT = PT + C7VT hold for negative terms too.
 
-The batched plane/sphere fits are written here (a few lines each) because scipy/pyvista fit one point set at a
-time; a Python loop over 16,807 models x 35 patches would dominate the run time.
+The batched plane/sphere fits and rim extremes are written here (small numba loops) because scipy/pyvista fit
+one point set at a time; a Python loop over 16,807 models x 35 patches would dominate the run time, and the
+numpy form (a gathered copy of every landmark vertex, a matmul per patch) cost 2.5x the time (docs/store.md).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numba
 import numpy as np
 import pandas as pd
 
@@ -109,21 +112,122 @@ def _plane_moments_fit(q: np.ndarray, vertical: np.ndarray):
     return mean[:, 0], normal, np.sqrt(np.clip(w[:, 0], 0.0, None))
 
 
+@numba.njit(cache=True)
+def _patch_moments_nb(points, rows, starts, origin_row):
+    """Mean (B, P, 3) and covariance (B, P, 3, 3) of the patches ``rows[starts[j]:starts[j + 1]]`` of points
+    (B, N, 3), relative to each model's vertex ``origin_row``: raw moments read straight from the batch (no
+    gathered copy), one pass per model."""
+    n_models, n_patches = points.shape[0], starts.shape[0] - 1
+    mean = np.empty((n_models, n_patches, 3))
+    cov = np.empty((n_models, n_patches, 3, 3))
+    for b in range(n_models):
+        o0, o1, o2 = (
+            np.float64(points[b, origin_row, 0]),
+            np.float64(points[b, origin_row, 1]),
+            np.float64(points[b, origin_row, 2]),
+        )
+        for j in range(n_patches):
+            # moments about the patch's first vertex: coordinates of the patch's size keep the cancellation in
+            # E[q q^T] - E[q] E[q]^T small (out-of-plane RMS to ~1e-7 mm), then shifted to the model's origin
+            r0 = rows[starts[j]]
+            p0, p1, p2 = np.float64(points[b, r0, 0]), np.float64(points[b, r0, 1]), np.float64(points[b, r0, 2])
+            sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+            for k in range(starts[j], starts[j + 1]):
+                r = rows[k]
+                x = np.float64(points[b, r, 0]) - p0
+                y = np.float64(points[b, r, 1]) - p1
+                z = np.float64(points[b, r, 2]) - p2
+                sx += x
+                sy += y
+                sz += z
+                sxx += x * x
+                sxy += x * y
+                sxz += x * z
+                syy += y * y
+                syz += y * z
+                szz += z * z
+            n = starts[j + 1] - starts[j]
+            mx, my, mz = sx / n, sy / n, sz / n
+            mean[b, j, 0], mean[b, j, 1], mean[b, j, 2] = mx + (p0 - o0), my + (p1 - o1), mz + (p2 - o2)
+            cov[b, j, 0, 0] = sxx / n - mx * mx
+            cov[b, j, 1, 1] = syy / n - my * my
+            cov[b, j, 2, 2] = szz / n - mz * mz
+            cov[b, j, 0, 1] = cov[b, j, 1, 0] = sxy / n - mx * my
+            cov[b, j, 0, 2] = cov[b, j, 2, 0] = sxz / n - mx * mz
+            cov[b, j, 1, 2] = cov[b, j, 2, 1] = syz / n - my * mz
+    return mean, cov
+
+
+def _plane_fits(points: np.ndarray, patches: dict[str, np.ndarray], origin_row: int, vertical: np.ndarray):
+    """TLS planes of every patch of every model in one pass and one batched ``eigh``: points (B, N, 3) mm,
+    patches name -> vertex rows.  Returns centres (B, P, 3) relative to each model's vertex ``origin_row``, unit
+    normals (B, P, 3) with normal.vertical > 0, out-of-plane RMS (B, P) mm, patches in the dict's order.  The
+    raw-moment formulation of :func:`fit_planes`, each patch about its own first vertex."""
+    rows = [np.asarray(v, dtype=np.int64).ravel() for v in patches.values()]
+    starts = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
+    mean, cov = _patch_moments_nb(points, np.concatenate(rows), starts, origin_row)
+    if not np.isfinite(cov).all():
+        name = list(patches)[int(np.argmax(~np.isfinite(cov).all(axis=(0, 2, 3))))]
+        raise ValueError(f"non-finite coordinates in landmark set {name}")
+    w, v = np.linalg.eigh(cov)
+    normal = v[..., 0]
+    normal = normal * np.where(normal @ vertical < 0, -1.0, 1.0)[..., None]
+    return mean, normal, np.sqrt(np.clip(w[..., 0], 0.0, None))
+
+
+@numba.njit(cache=True)
+def _sphere_moments_nb(pts):
+    """Per model of pts (B, K, 3): mean (B, 3), and of the centred points q: sum q q^T (B, 3, 3), sum q |q|^2
+    (B, 3) and mean |q|^2 (B,).  Two passes over the points, no temporary arrays."""
+    n_models, k = pts.shape[0], pts.shape[1]
+    mu, qq, qs, s_mean = (
+        np.empty((n_models, 3)),
+        np.empty((n_models, 3, 3)),
+        np.empty((n_models, 3)),
+        np.empty(n_models),
+    )
+    for b in range(n_models):
+        sx = sy = sz = 0.0
+        for i in range(k):
+            sx += pts[b, i, 0]
+            sy += pts[b, i, 1]
+            sz += pts[b, i, 2]
+        mx, my, mz = sx / k, sy / k, sz / k
+        xx = xy = xz = yy = yz = zz = rx = ry = rz = ss = 0.0
+        for i in range(k):
+            x, y, z = pts[b, i, 0] - mx, pts[b, i, 1] - my, pts[b, i, 2] - mz
+            s = x * x + y * y + z * z
+            xx += x * x
+            xy += x * y
+            xz += x * z
+            yy += y * y
+            yz += y * z
+            zz += z * z
+            rx += x * s
+            ry += y * s
+            rz += z * s
+            ss += s
+        mu[b, 0], mu[b, 1], mu[b, 2] = mx, my, mz
+        qq[b, 0, 0], qq[b, 1, 1], qq[b, 2, 2] = xx, yy, zz
+        qq[b, 0, 1] = qq[b, 1, 0] = xy
+        qq[b, 0, 2] = qq[b, 2, 0] = xz
+        qq[b, 1, 2] = qq[b, 2, 1] = yz
+        qs[b, 0], qs[b, 1], qs[b, 2] = rx, ry, rz
+        s_mean[b] = ss / k
+    return mu, qq, qs, s_mean
+
+
 def fit_spheres(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Algebraic least-squares spheres of a batch of point sets (works on partial caps).
 
     pts: (B, K, 3) mm.  Solves [2x 2y 2z 1][c; d] = x^2+y^2+z^2 on mean-centred points (for conditioning).
     Returns centre (B, 3) and radius (B,) in mm.
     """
-    pts = np.asarray(pts, dtype=float)
-    mu = pts.mean(axis=1)
-    q = pts - mu[:, None, :]
-    s = np.einsum("bki,bki->bk", q, q)
+    mu, qq, qs, s_mean = _sphere_moments_nb(np.asarray(pts, dtype=float))
     # centred points make the column of ones orthogonal to the 2q columns, so the 4x4 normal equations split
     # into a 3x3 system for the centre offset and d = mean(|q|^2)
-    qt = q.transpose(0, 2, 1)
-    c = 0.5 * np.linalg.solve(np.matmul(qt, q), np.matmul(qt, s[:, :, None]))[:, :, 0]
-    return mu + c, np.sqrt(s.mean(axis=1) + np.einsum("bi,bi->b", c, c))
+    c = 0.5 * np.linalg.solve(qq, qs[:, :, None])[:, :, 0]
+    return mu + c, np.sqrt(s_mean + np.einsum("bi,bi->b", c, c))
 
 
 def patient_frame(
@@ -276,12 +380,14 @@ def cobb_angle(phi_sup_deg: np.ndarray, phi_inf_deg: np.ndarray, secondary_min_d
 
 
 class _Block:
-    """All landmark vertices of the batch gathered once (one fancy-index pass), addressed by set name.
+    """The landmark vertices of the batch that are used one by one (rims, femoral heads, symphysis) gathered
+    once (one fancy-index pass), addressed by set name.
 
-    Coordinates are relative to a per-model local origin, so positions from it are only used in differences.
+    Coordinates are relative to a per-model local origin (B, 3), so positions from it are only used in
+    differences.
     """
 
-    def __init__(self, points: np.ndarray, sets: dict[str, np.ndarray]):
+    def __init__(self, points: np.ndarray, sets: dict[str, np.ndarray], origin: np.ndarray):
         idx = [np.asarray(i).ravel() for i in sets.values()]
         ends = np.cumsum([len(i) for i in idx])
         self.slices = {k: slice(e - len(i), e) for k, i, e in zip(sets, idx, ends)}
@@ -293,19 +399,42 @@ class _Block:
             first = int(np.argmax(bad))
             name = next(k for k, sl in self.slices.items() if sl.start <= first < sl.stop)
             raise ValueError(f"non-finite coordinates in landmark set {name}")
-        # one local origin per model (its first landmark vertex): every parameter is translation invariant,
-        # and small coordinates keep the raw-moment plane fits accurate
-        self.pts -= self.pts[:, :1, :].copy()
+        self.pts -= origin[:, None, :]
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.pts[:, self.slices[name]]
 
-    def extreme(self, name: str, direction: np.ndarray, largest: bool) -> np.ndarray:
-        """Vertex of set ``name`` with the largest (smallest) projection on ``direction`` (B, 3), per model."""
-        p = self[name]
-        proj = np.matmul(p, direction[:, :, None])[:, :, 0]
-        k = np.argmax(proj, axis=1) if largest else np.argmin(proj, axis=1)
-        return np.take_along_axis(p, k[:, None, None], axis=1)[:, 0]
+    def extremes(self, names: list[str], direction: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per set of ``names``: its vertices with the largest and the smallest projection on ``direction``
+        (B, 3), per model (the first one on a tie, like ``argmax``), all sets in one pass."""
+        sl = [self.slices[k] for k in names]
+        starts = np.array([x.start for x in sl], dtype=np.int64)
+        stops = np.array([x.stop for x in sl], dtype=np.int64)
+        rows = _extreme_rows_nb(self.pts, starts, stops, np.ascontiguousarray(direction, dtype=float))
+        picked = np.take_along_axis(self.pts, rows.reshape(len(rows), -1)[:, :, None], axis=1)
+        picked = picked.reshape(len(rows), len(names), 2, 3)
+        return {k: (picked[:, j, 0], picked[:, j, 1]) for j, k in enumerate(names)}
+
+
+@numba.njit(cache=True)
+def _extreme_rows_nb(pts, starts, stops, direction):
+    """Rows of pts (B, N, 3) with the largest and smallest projection on direction (B, 3) within each row range
+    [starts[j], stops[j]) -> (B, J, 2) int64 (first on a tie)."""
+    n_models, n_sets = pts.shape[0], starts.shape[0]
+    rows = np.empty((n_models, n_sets, 2), dtype=np.int64)
+    for b in range(n_models):
+        d0, d1, d2 = direction[b, 0], direction[b, 1], direction[b, 2]
+        for j in range(n_sets):
+            hi = lo = starts[j]
+            p_hi = p_lo = pts[b, hi, 0] * d0 + pts[b, hi, 1] * d1 + pts[b, hi, 2] * d2
+            for i in range(starts[j] + 1, stops[j]):
+                p = pts[b, i, 0] * d0 + pts[b, i, 1] * d1 + pts[b, i, 2] * d2
+                if p > p_hi:
+                    hi, p_hi = i, p
+                if p < p_lo:
+                    lo, p_lo = i, p
+            rows[b, j, 0], rows[b, j, 1] = hi, lo
+    return rows
 
 
 def measure(
@@ -353,24 +482,23 @@ def measure(
     if age_arr.shape != (b,):
         raise ValueError(f"age must be None, a scalar or one value per model ({b}), got shape {age_arr.shape}")
 
-    sets = {f"{lv} sup": landmarks.endplate_sup[lv] for lv in LEVELS + ("S1",)}
-    sets.update({f"{lv} inf": landmarks.endplate_inf[lv] for lv in LEVELS})
-    sets.update({f"{lv} sup rim": landmarks.rim_sup[lv] for lv in LEVELS + ("S1",)})
+    # one local origin per model (its first endplate vertex): every parameter is translation invariant, and
+    # small coordinates keep the raw-moment plane fits accurate
+    patches = {f"{lv} sup": landmarks.endplate_sup[lv] for lv in LEVELS + ("S1",)}
+    patches.update({f"{lv} inf": landmarks.endplate_inf[lv] for lv in LEVELS})
+    origin_row = int(np.asarray(patches[f"{LEVELS[0]} sup"]).ravel()[0])
+    sets = {f"{lv} sup rim": landmarks.rim_sup[lv] for lv in LEVELS + ("S1",)}
     sets.update({f"{lv} inf rim": landmarks.rim_inf[lv] for lv in LEVELS})
     sets.update({f"femoral head {k}": landmarks.femoral_head[k] for k in ("L", "R")})
     sets["pubic symphysis"] = landmarks.pubic_symphysis
-    blk = _Block(pts, sets)
+    blk = _Block(pts, sets, pts[:, origin_row].astype(float))
 
-    # 1. endplate planes (loop over the 35 patches, vectorised over models)
+    # 1. endplate planes: the 35 patches of all models in one pass (sup T1..L5, S1, then inf T1..L5)
     nl = len(LEVELS)
-    c_sup, n_sup, c_inf, n_inf = (np.empty((b, nl, 3)) for _ in range(4))
-    rms_max = np.zeros(b)
-    for i, lv in enumerate(LEVELS):
-        c_sup[:, i], n_sup[:, i], r1 = _plane_moments_fit(blk[f"{lv} sup"], v)
-        c_inf[:, i], n_inf[:, i], r2 = _plane_moments_fit(blk[f"{lv} inf"], v)
-        rms_max = np.maximum(rms_max, np.maximum(r1, r2))
-    s1_c, s1_n, r = _plane_moments_fit(blk["S1 sup"], v)
-    rms_max = np.maximum(rms_max, r)
+    centre, normal, rms = _plane_fits(pts, patches, origin_row, v)
+    c_sup, n_sup, s1_c, s1_n = centre[:, :nl], normal[:, :nl], centre[:, nl], normal[:, nl]
+    c_inf, n_inf = centre[:, nl + 1 :], normal[:, nl + 1 :]
+    rms_max = rms.max(axis=1)
 
     # 2. femoral heads, 3. frame
     fh_c = {}
@@ -397,7 +525,9 @@ def measure(
     c7_ext = 2.0 * t1c - t2c
     c7 = c7_ext if c7_proxy == "extrapolated" else t1c
     t1spi = t1_spinopelvic_inclination_deg(t1c, ha, ant, v)
-    s1ps = blk.extreme("S1 sup rim", ant, largest=False)
+    rims = [k for k in sets if k.endswith(" rim")]
+    rim_ext = blk.extremes(rims, ant)  # (most anterior, most posterior) vertex of every rim
+    s1ps = rim_ext["S1 sup rim"][1]
 
     out: dict[str, np.ndarray | list] = {
         "PI": pi,
@@ -444,10 +574,10 @@ def measure(
             n_inf[:, iu],
             cl,
             nl_,
-            blk.extreme(ru, ant, True),
-            blk.extreme(rl, ant, True),
-            blk.extreme(ru, ant, False),
-            blk.extreme(rl, ant, False),
+            rim_ext[ru][0],
+            rim_ext[rl][0],
+            rim_ext[ru][1],
+            rim_ext[rl][1],
         )
         out[f"DH_{name}"], out[f"DHa_{name}"], out[f"DHp_{name}"] = dh, dha, dhp
     # anatomical sides: with swapped labels the fit called "L" is the right head

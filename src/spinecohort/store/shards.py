@@ -8,7 +8,7 @@ models with inverted hexes exactly as ``models.hex_points_checked`` does (``repa
 hex mean, one ``UntangleContext`` per job; only those models are evaluated again), computes the
 spinopelvic parameters on those float64 coordinates, and hands the batch to the store's ``ShardWriter``;
 nothing is read back.  Memory is one
-batch (49 models x ~145k nodes x 3 x 8 B ~ 170 MB per float64 array), whatever the shard size.  Check and
+batch (56 models x ~145k nodes x 3 x 8 B ~ 195 MB per float64 array), whatever the shard size.  Check and
 repair happen *before* the store write, so the store only ever holds the coordinates the FE models use;
 a model that cannot be repaired is kept as sampled and reported (``invalid_after > 0``).
 
@@ -37,8 +37,9 @@ from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
 from spinecohort.store.zarr_store import model_name, vertex_selector
 
-#: models sampled per float64 batch: 49 x 81k nodes x 3 x 8 B = 95 MB per array
-DEFAULT_CHUNK = 49
+#: models sampled per float64 batch: 56 x 81k nodes x 3 x 8 B = 109 MB per array; 8 store chunks of 7 models, and
+#: a whole number of the quality kernel's vector lanes (``quality.LANES``), so no lane is padding
+DEFAULT_CHUNK = 56
 
 
 def _check_weights(weights: np.ndarray, n_available: int, what: str) -> np.ndarray:
