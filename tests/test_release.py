@@ -147,6 +147,22 @@ def test_verify_names_a_truncated_archive(bag, tmp_path):
         safe_extract(part, tmp_path / "out")
 
 
+def test_verify_says_when_the_disk_cannot_hold_the_unpacked_store(bag, tmp_path, monkeypatch):
+    """Unpacking needs the parts' bytes free where it unpacks; with 1 kB free the message names the place, both
+    sizes and the way out, before tar starts (a full disk used to surface as an OSError deep in tarfile)."""
+    import spinecohort.release as release
+
+    parts = sum(p.stat().st_size for p in (bag / "data").glob("cohort.zarr.part*.tar"))
+    real = shutil.disk_usage
+    monkeypatch.setattr(release.shutil, "disk_usage", lambda path: real(path)._replace(free=1000))
+    with pytest.raises(
+        ReleaseError, match=rf"{parts / 1e9:.2f} GB\) into {tmp_path}, which has 0.00 GB free.*--tmpdir"
+    ):
+        verify_release(bag, workdir=tmp_path)
+    monkeypatch.setattr(release.shutil, "disk_usage", real)
+    assert verify_release(bag, workdir=tmp_path)["files"] > 0  # enough space: it verifies
+
+
 def test_two_release_runs_give_byte_identical_bags(test_run, pristine):
     proc = subprocess.run(
         [

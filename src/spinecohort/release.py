@@ -714,6 +714,16 @@ def verify_release(
         on_disk = sorted(p.name for p in data.glob(f"{STORE_NAME}.part*.tar"))
         if sorted(listed) != on_disk:
             raise ReleaseError(f"{root}: archive parts {on_disk} differ from data/{PARTS_INDEX} ({listed})")
+        # the parts hold the whole store (8 GB on the default grid): say so before a full disk interrupts tar
+        need = sum((data / row["part"]).stat().st_size for row in index)
+        where = Path(workdir) if workdir is not None else Path(tempfile.gettempdir())
+        free = shutil.disk_usage(where).free
+        if free < need:
+            raise ReleaseError(
+                f"{root}: verifying the release unpacks its {len(index)} archive parts ({need / 1e9:.2f} GB) into "
+                f"{where}, which has {free / 1e9:.2f} GB free; free space there or unpack elsewhere (TMPDIR, or "
+                "`spinecohort verify --tmpdir DIR`)"
+            )
         with tempfile.TemporaryDirectory(prefix="spinecohort-verify-", dir=workdir) as tmp:
             for row in index:
                 names = safe_extract(data / row["part"], tmp)
