@@ -395,6 +395,13 @@ def test_bad_input_raises(model):
     bad[lm.femoral_head["L"][0]] = np.nan
     with pytest.raises(ValueError, match="femoral head"):
         measure(bad, lm)
+    # an endplate vertex (the plane fits read the batch directly) and the origin vertex (every set is relative
+    # to it) are named as well
+    for level, side, where in (("L3", "inf", 7), ("T1", "sup", 0)):
+        bad = np.stack([pts, pts])
+        bad[1, getattr(lm, f"endplate_{side}")[level][where]] = np.inf
+        with pytest.raises(ValueError, match=f"non-finite coordinates in landmark set {level} {side}$"):
+            measure(bad, lm)
 
 
 def test_float32_input(model):
