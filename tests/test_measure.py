@@ -340,6 +340,35 @@ def test_batch_equals_single():
     assert df.PT.tolist() == pytest.approx([20, -5, 32], abs=1e-6)
 
 
+def test_measuring_only_the_landmark_rows_gives_the_same_parameters_bit_for_bit(model):
+    """``Landmarks.measured``: the shard pass measures the hex model on its landmark rows (no copy of its skin);
+    the parameters are those of the whole model, to the bit, and the rows are the sets' vertices only."""
+    pts, lm, _, _ = model
+    # 50 vertices no set uses in front of the model's (every index moves), a body set on them
+    junk = np.random.default_rng(4).normal(0.0, 100.0, (50, 3))
+    pts = np.vstack([junk, pts])
+
+    def moved(sets):
+        return {k: v + 50 for k, v in sets.items()}
+
+    lm = Landmarks(
+        part=np.concatenate([np.zeros(50, np.int16), lm.part]),
+        part_names=lm.part_names,
+        endplate_sup=moved(lm.endplate_sup),
+        endplate_inf=moved(lm.endplate_inf),
+        rim_sup=moved(lm.rim_sup),
+        rim_inf=moved(lm.rim_inf),
+        femoral_head=moved(lm.femoral_head),
+        body={"T1": np.arange(50)},
+        pubic_symphysis=lm.pubic_symphysis + 50,
+    )
+    batch = np.stack([pts, pts + [3.0, -2.0, 1.0], 1.01 * pts])
+    rows, on_rows = lm.measured()
+    assert rows.tolist() == list(range(50, len(pts))) and on_rows.body == {}
+    whole, landmark_rows = measure(batch, lm), measure(batch[:, rows], on_rows)
+    pd.testing.assert_frame_equal(whole, landmark_rows, check_exact=True)
+
+
 def test_batched_plane_fits_are_exact_far_from_the_origin():
     """The shard pass's plane fits (all patches of all models in one pass) on patches 0.5 m from the model's
     origin vertex: square corners (+-10, +-10) mm at z = +-h sign(xy) have a TLS plane z = 0 and out-of-plane RMS

@@ -80,6 +80,31 @@ class Landmarks:
         if set(self.femoral_head) != {"L", "R"}:
             raise ValueError(f"{source}: femoral_head must have exactly the keys 'L' and 'R'")
 
+    def measured(self) -> tuple[np.ndarray, Landmarks]:
+        """The vertices the spinopelvic measurement reads (endplates, rims, femoral heads, symphysis), sorted,
+        and these landmarks on that row list: ``measure(points[:, rows], restricted)`` gives what
+        ``measure(points, self)`` gives, bit for bit (every set keeps its order).  ``body`` and ``anchors``
+        are dropped: the measurement does not read them."""
+        used = [self.endplate_sup, self.endplate_inf, self.rim_sup, self.rim_inf, self.femoral_head]
+        rows = np.unique(np.concatenate([np.ravel(v) for d in used for v in d.values()] + [self.pubic_symphysis]))
+
+        def on_rows(sets: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+            return {k: np.searchsorted(rows, v) for k, v in sets.items()}
+
+        restricted = Landmarks(
+            part=self.part[rows],
+            part_names=self.part_names,
+            endplate_sup=on_rows(self.endplate_sup),
+            endplate_inf=on_rows(self.endplate_inf),
+            rim_sup=on_rows(self.rim_sup),
+            rim_inf=on_rows(self.rim_inf),
+            femoral_head=on_rows(self.femoral_head),
+            body={},
+            pubic_symphysis=np.searchsorted(rows, self.pubic_symphysis),
+            meta=self.meta,
+        )
+        return rows, restricted
+
     def _sets(self) -> dict[str, dict[str, np.ndarray]]:
         return {
             "endplate_sup": self.endplate_sup,
