@@ -9,11 +9,13 @@ the prescribed tilts, and every positional parameter an angle of prescribed posi
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
 
-from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
+from spinecohort.cohort.landmarks import DISCS, LEVELS, MEASURED_SETS, Landmarks, disc_name
 from spinecohort.measure.spinopelvic import (
     UNITS,
     _plane_fits,
@@ -348,19 +350,12 @@ def test_measuring_only_the_landmark_rows_gives_the_same_parameters_bit_for_bit(
     junk = np.random.default_rng(4).normal(0.0, 100.0, (50, 3))
     pts = np.vstack([junk, pts])
 
-    def moved(sets):
-        return {k: v + 50 for k, v in sets.items()}
-
-    lm = Landmarks(
+    lm = dataclasses.replace(
+        lm,
         part=np.concatenate([np.zeros(50, np.int16), lm.part]),
-        part_names=lm.part_names,
-        endplate_sup=moved(lm.endplate_sup),
-        endplate_inf=moved(lm.endplate_inf),
-        rim_sup=moved(lm.rim_sup),
-        rim_inf=moved(lm.rim_inf),
-        femoral_head=moved(lm.femoral_head),
         body={"T1": np.arange(50)},
         pubic_symphysis=lm.pubic_symphysis + 50,
+        **{name: {k: v + 50 for k, v in getattr(lm, name).items()} for name in MEASURED_SETS},
     )
     batch = np.stack([pts, pts + [3.0, -2.0, 1.0], 1.01 * pts])
     rows, on_rows = lm.measured()

@@ -11,7 +11,7 @@ head therefore lies at -x and the right one at +x.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,10 @@ DISCS: tuple[tuple[str, str], ...] = tuple(zip(LEVELS, LEVELS[1:] + ("S1",)))
 def disc_name(upper: str, lower: str) -> str:
     """Name of the disc between two levels, e.g. ``"L4-L5"``, ``"L5-S1"``."""
     return f"{upper}-{lower}"
+
+
+#: the level -> vertices sets the spinopelvic measurement reads (with ``pubic_symphysis``)
+MEASURED_SETS = ("endplate_sup", "endplate_inf", "rim_sup", "rim_inf", "femoral_head")
 
 
 @dataclass(frozen=True)
@@ -85,23 +89,15 @@ class Landmarks:
         and these landmarks on that row list: ``measure(points[:, rows], restricted)`` gives what
         ``measure(points, self)`` gives, bit for bit (every set keeps its order).  ``body`` and ``anchors``
         are dropped: the measurement does not read them."""
-        used = [self.endplate_sup, self.endplate_inf, self.rim_sup, self.rim_inf, self.femoral_head]
-        rows = np.unique(np.concatenate([np.ravel(v) for d in used for v in d.values()] + [self.pubic_symphysis]))
-
-        def on_rows(sets: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-            return {k: np.searchsorted(rows, v) for k, v in sets.items()}
-
-        restricted = Landmarks(
+        sets = [np.ravel(v) for name in MEASURED_SETS for v in getattr(self, name).values()]
+        rows = np.unique(np.concatenate([*sets, self.pubic_symphysis]))
+        restricted = replace(
+            self,
             part=self.part[rows],
-            part_names=self.part_names,
-            endplate_sup=on_rows(self.endplate_sup),
-            endplate_inf=on_rows(self.endplate_inf),
-            rim_sup=on_rows(self.rim_sup),
-            rim_inf=on_rows(self.rim_inf),
-            femoral_head=on_rows(self.femoral_head),
             body={},
+            anchors={},
             pubic_symphysis=np.searchsorted(rows, self.pubic_symphysis),
-            meta=self.meta,
+            **{name: {k: np.searchsorted(rows, v) for k, v in getattr(self, name).items()} for name in MEASURED_SETS},
         )
         return rows, restricted
 
