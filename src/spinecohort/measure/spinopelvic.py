@@ -92,24 +92,12 @@ def fit_planes(patch: np.ndarray, vertical: np.ndarray) -> tuple[np.ndarray, np.
     normal.vertical > 0, and rms (B,) = out-of-plane RMS residual in mm (sqrt of the smallest eigenvalue of
     the covariance, equal to S[-1]/sqrt(K) of the SVD formulation).
 
-    The covariance comes from the raw moments (two BLAS matmuls, no centred copy); the offset to the first
-    vertex keeps the moments small, so round-off stays far below 1e-5 mm wherever the model lies.
+    :func:`_plane_fits` with one patch: raw moments about the first vertex (no centred copy), so round-off
+    stays far below 1e-5 mm wherever the model lies.
     """
     patch = np.asarray(patch, dtype=float)
-    ref = patch[:, :1, :]
-    centre, normal, rms = _plane_moments_fit(patch - ref, np.asarray(vertical, float))
-    return centre + ref[:, 0], normal, rms
-
-
-def _plane_moments_fit(q: np.ndarray, vertical: np.ndarray):
-    """TLS plane of points ``q`` (B, K, 3) given near a local origin (|q| up to ~1 m keeps round-off < 1e-5 mm)."""
-    k = q.shape[1]
-    mean = np.matmul(np.full((1, k), 1.0 / k), q)  # (B, 1, 3)
-    cov = np.matmul(q.transpose(0, 2, 1), q) / k - mean.transpose(0, 2, 1) * mean
-    w, v = np.linalg.eigh(cov)
-    normal = v[:, :, 0]
-    normal = normal * np.where(normal @ vertical < 0, -1.0, 1.0)[:, None]
-    return mean[:, 0], normal, np.sqrt(np.clip(w[:, 0], 0.0, None))
+    centre, normal, rms = _plane_fits(patch, {"patch": np.arange(patch.shape[1])}, 0, np.asarray(vertical, float))
+    return centre[:, 0] + patch[:, 0], normal[:, 0], rms[:, 0]
 
 
 @numba.njit(cache=True)
@@ -162,8 +150,8 @@ def _patch_moments_nb(points, rows, starts, origin_row):
 def _plane_fits(points: np.ndarray, patches: dict[str, np.ndarray], origin_row: int, vertical: np.ndarray):
     """TLS planes of every patch of every model in one pass and one batched ``eigh``: points (B, N, 3) mm,
     patches name -> vertex rows.  Returns centres (B, P, 3) relative to each model's vertex ``origin_row``, unit
-    normals (B, P, 3) with normal.vertical > 0, out-of-plane RMS (B, P) mm, patches in the dict's order.  The
-    raw-moment formulation of :func:`fit_planes`, each patch about its own first vertex."""
+    normals (B, P, 3) with normal.vertical > 0, out-of-plane RMS (B, P) mm, patches in the dict's order.  Raw
+    moments, each patch about its own first vertex (its coordinates stay of the patch's size)."""
     rows = [np.asarray(v, dtype=np.int64).ravel() for v in patches.values()]
     starts = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
     mean, cov = _patch_moments_nb(points, np.concatenate(rows), starts, origin_row)

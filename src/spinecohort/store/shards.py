@@ -7,14 +7,15 @@ pass (``quality.model_quality``: each hex's corner Jacobians are formed once for
 models with inverted hexes exactly as ``models.hex_points_checked`` does (``repair.untangle`` against the
 hex mean, one ``UntangleContext`` per job; only those models are evaluated again), computes the
 spinopelvic parameters on those float64 coordinates, and hands the batch to the store's ``ShardWriter``;
-nothing is read back.  Memory is one
-batch (56 models x (81k tri + 11k hex volume nodes) x 3 x 8 B ~ 125 MB of float64), whatever the shard size.  Check and
-repair happen *before* the store write, so the store only ever holds the coordinates the FE models use;
-a model that cannot be repaired is kept as sampled and reported (``invalid_after > 0``).
+nothing is read back.  Memory is one batch (56 models x (81k tri + 11k hex volume nodes) x 3 x 8 B ~ 125 MB of
+float64), whatever the shard size.  Check and repair happen *before* the store write, so the store only ever
+holds the coordinates the FE models use; a model that cannot be repaired is kept as sampled and reported
+(``invalid_after > 0``).
 
 ``hex_landmarks`` builds a :class:`Landmarks` on the hex model's node numbering (hex nodes, then surface
 nodes), so ``measure.measure`` runs unchanged on the hex coordinates (in the shard pass on its landmark
-rows, ``Landmarks.measured``) and the tri-vs-hex difference of every parameter can be reported.  Millimetres and degrees throughout.
+rows, ``Landmarks.measured``) and the tri-vs-hex difference of every parameter can be reported.  Millimetres
+and degrees throughout.
 """
 
 from __future__ import annotations
@@ -280,10 +281,11 @@ def process_shard(
         raise ValueError(
             f"the template's {n_vol} + {len(template.surface_vertex)} nodes are not the hex SSM's {len(hex_ssm.mean)}"
         )
-    df_tri = ssm.deformation_fields(m).reshape(m, -1)
-    # the surface nodes are tri vertices (transfer_fields copies their fields): only the volume nodes are formed
-    df_vol = np.ascontiguousarray(hex_ssm.fields[:m, :n_vol]).reshape(m, -1)
-    vol_mean = hex_ssm.mean[:n_vol]
+    # the mean as a sixth mode of weight 1: one BLAS pass writes mean + DF . b (the product's last FMA adds the
+    # mean, so the bits are those of the product plus the mean; 8.7 instead of 14.2 ms per 56 tri models).
+    # The surface nodes are tri vertices (transfer_fields copies their fields): only the volume nodes are formed
+    df_tri = np.vstack([ssm.deformation_fields(m).reshape(m, -1), ssm.mean.reshape(1, -1)])
+    df_vol = np.vstack([hex_ssm.fields[:m, :n_vol].reshape(m, -1), hex_ssm.mean[:n_vol].reshape(1, -1)])
     phases = ("sample", "quality", "measure", "write")
     # wall, CPU (user + system) and of it system (kernel) time per phase
     timing = {f"{k}{unit}": 0.0 for unit in ("_s", "_cpu_s", "_sys_s") for k in phases}
@@ -299,10 +301,6 @@ def process_shard(
 
     qi = _QualityInputs(template, hex_ssm)
     quality, p_tri, p_hex = [], [], []
-    # the mean as a sixth mode of weight 1: one BLAS pass writes mean + DF . b (the product's last FMA adds the
-    # mean, so the bits are those of the product plus the mean; 8.7 instead of 14.2 ms per 56 tri models)
-    df_tri = np.vstack([df_tri, ssm.mean.reshape(1, -1)])
-    df_vol = np.vstack([df_vol, vol_mean.reshape(1, -1)])
     # the hex model is measured on its landmark rows only: the volume ones from the hex volume, the surface
     # ones (femoral heads, symphysis) from their tri vertices, so no batch-sized copy of the hex skin is made
     hex_rows, hex_lm_rows = hex_lm.measured()
@@ -313,9 +311,9 @@ def process_shard(
     # than the products that fill them
     t_buf = np.empty((min(batch, len(w)), *ssm.mean.shape))
     v_buf = np.empty((min(batch, len(w)), n_vol, 3))
-    # whole batches through every phase: taking one 7-model store chunk at a time from sampling to the write,
-    # while it is in the cache, saved ~0.8 s of a shard's write phase and cost as much in per-chunk fixed
-    # costs (17 endplate plane fits, kernel and table set-up per call; measured, docs/store.md)
+    # whole batches through every phase: one 7-model store chunk at a time from sampling to the write, to stay
+    # in the cache, saves ~2 s of the stage's 90 s CPU and splits every phase's calls by 8 (measured,
+    # docs/store.md "One pass per shard")
     for i in range(0, len(w), batch):
         wb, ib = w[i : i + batch], ids[i : i + batch]
         at = clock()
