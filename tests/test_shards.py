@@ -289,3 +289,24 @@ def test_the_shard_job_does_not_import_what_it_never_calls():
     code = f"import sys; import spinecohort.store.shards; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == []
+
+
+def test_shard_tables_are_written_as_pandas_writes_them(tmp_path):
+    """The shard job's CSV writer preformats the float columns; the bytes are pandas' to_csv with that
+    float_format (NaN empty, inf, ints, bools, quoted strings, a nullable string column with a missing value)."""
+    from spinecohort.store.shards import _to_csv
+
+    frame = pd.DataFrame(
+        {
+            "model_id": [3, 4, 5],
+            "angle": [1.23456789, np.nan, -np.inf],
+            "tiny": [1e-12, 123456789.0, -0.0],
+            "repaired": [True, False, True],
+            "repair_error": ["", 'model_00004: "x", y', "a\nb"],
+            "note": pd.array(["p", None, "r"], dtype="string"),
+        }
+    )
+    for fmt in ("%.6g", "%.6f"):
+        _to_csv(frame, tmp_path / "a.csv", fmt)
+        frame.to_csv(tmp_path / "b.csv", index=False, float_format=fmt)
+        assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes(), fmt

@@ -259,6 +259,62 @@ def test_shard_objects_are_byte_identical_to_zarr_pythons_own_write(tmp_path):
             assert obj.read_bytes() == (theirs / obj.relative_to(ours)).read_bytes(), obj
 
 
+@pytest.mark.parametrize("encoding", S.ENCODINGS)
+@pytest.mark.parametrize("shard_models, chunk", [(9, 3), (10, 5), (14, 7)])
+def test_linear_points_are_stored_as_their_float64_formula_is(tmp_path, encoding, shard_models, chunk):
+    """ShardWriter.add(LinearPoints) forms every chunk straight from mean + fields . w (+ the level offsets of
+    the distracted models); its shard objects are byte-identical to writing the float64 formula (numpy), for
+    the unrolled 7-model chunk and the general one, a partial boundary chunk (27 models in shards of 10: the
+    last holds 7 = a chunk of 5 and one of 2), node blocks of 512 with a partial last one (1,100 nodes), three
+    modes (zero terms in front of them) and both encodings."""
+    rng = np.random.default_rng(7)
+    n_tri, n_vol, n_levels = 1100, 30, 4
+    mean = rng.uniform(-300, 300, (n_tri, 3))
+    fields = rng.normal(0.0, 4.0, (3, n_tri, 3))
+    level = rng.integers(-1, n_levels, n_tri)
+    terms = S.linear_fields(mean, fields)
+    assert terms.shape == (6, 3, n_tri) and not terms[:2].any()  # 3 fields + the mean, after 2 zero terms
+    stores = {k: tmp_path / f"{k}.zarr" for k in ("floats", "linear")}
+    for path in stores.values():
+        S.create_store(path, n_tri, n_vol, 3, (-1, 0, 1), shard_models, encoding=encoding, chunk_models=chunk)
+    for shard in range(S.n_shards(27, shard_models)):
+        a, b = S.shard_range(shard, shard_models, 27)
+        w = S.weights_of(np.arange(a, b), 3, (-1, 0, 1)) * 1.7
+        offsets = rng.normal(0.0, 2.0, (b - a, n_levels, 3)) * (rng.random((b - a, 1, 1)) < 0.5)
+        tri = mean + np.tensordot(w, fields, axes=(1, 0))
+        for k in range(b - a):
+            if np.abs(offsets[k]).max() > 0:
+                tri[k, level >= 0] += offsets[k, level[level >= 0]]
+        vol = rng.uniform(-100, 100, (b - a, n_vol, 3))
+        for kind, path in stores.items():
+            writer = S.ShardWriter(path, shard)
+            writer.add(tri if kind == "floats" else S.LinearPoints(terms, w, level, offsets), vol)
+            writer.close()
+        for obj in S._shard_objects(stores["floats"], shard)[:2]:
+            assert obj.read_bytes() == (stores["linear"] / obj.relative_to(stores["floats"])).read_bytes(), obj
+    # and what is stored reads back as the formula within the quantization bound
+    z = zarr.open_group(str(stores["linear"]), mode="r")
+    assert np.abs(z["tri/points"][26] - tri[-1]).max() <= S.error_bound_mm(encoding, 512.0)
+
+
+def test_linear_points_out_of_range_or_non_finite_are_refused(tmp_path):
+    path = tmp_path / "c.zarr"
+    S.create_store(path, 20, 5, 2, (-1, 0, 1), 3, chunk_models=3)
+    mean, fields = np.zeros((20, 3)), np.zeros((2, 20, 3))
+    fields[1, 4, 2] = 400.0  # the third model (w2 = 1.5) puts node 4 at z = 600 mm
+    w = np.array([[-1.0, -1.0], [-1.0, 0.0], [-1.0, 1.5]])
+    writer = S.ShardWriter(path, 0)
+    with pytest.raises(ValueError, match=r"tri/points of shard 0 exceeds the store's max_abs_mm=512.0 .*600\.0\]"):
+        writer.add(S.LinearPoints(S.linear_fields(mean, fields), w), np.zeros((3, 5, 3)))
+    writer.abort()
+    fields[0, 7, 0] = np.nan
+    writer = S.ShardWriter(path, 0)
+    with pytest.raises(ValueError, match="tri/points of shard 0 has non-finite coordinates"):
+        writer.add(S.LinearPoints(S.linear_fields(mean, fields), w), np.zeros((3, 5, 3)))
+    writer.abort()
+    assert S.shard_problems(path)[0]  # nothing was kept: the shard reads as not written
+
+
 def test_every_array_uses_core_zarr_v3_codecs_only(tmp_path):
     path = tmp_path / "c.zarr"
     S.create_store(path, 30, 20, 2, (-1, 0, 1), 3)

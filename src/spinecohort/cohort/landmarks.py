@@ -84,13 +84,13 @@ class Landmarks:
         if set(self.femoral_head) != {"L", "R"}:
             raise ValueError(f"{source}: femoral_head must have exactly the keys 'L' and 'R'")
 
-    def measured(self) -> tuple[np.ndarray, Landmarks]:
-        """The vertices the spinopelvic measurement reads (endplates, rims, femoral heads, symphysis), sorted,
-        and these landmarks on that row list: ``measure(points[:, rows], restricted)`` gives what
-        ``measure(points, self)`` gives, bit for bit (every set keeps its order).  ``body`` and ``anchors``
-        are dropped: the measurement does not read them."""
+    def measured(self, extra=()) -> tuple[np.ndarray, Landmarks]:
+        """The vertices the spinopelvic measurement reads (endplates, rims, femoral heads, symphysis) and the
+        vertices ``extra``, sorted, and these landmarks on that row list: ``measure(points[:, rows],
+        restricted)`` gives what ``measure(points, self)`` gives, bit for bit (every set keeps its order).
+        ``body`` and ``anchors`` are dropped: the measurement does not read them."""
         sets = [np.ravel(v) for name in MEASURED_SETS for v in getattr(self, name).values()]
-        rows = np.unique(np.concatenate([*sets, self.pubic_symphysis]))
+        rows = np.unique(np.concatenate([*sets, self.pubic_symphysis, np.asarray(extra, dtype=np.int64)]))
         restricted = replace(
             self,
             part=self.part[rows],

@@ -46,18 +46,98 @@ def endplate_plane(points: np.ndarray, patch: np.ndarray, towards: np.ndarray) -
     return centre, normal
 
 
+def _ragged(sets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(concatenated indices int64, start offsets (len + 1,)) of a list of index arrays."""
+    starts = np.zeros(len(sets) + 1, dtype=np.int64)
+    starts[1:] = np.cumsum([len(v) for v in sets])
+    flat = np.concatenate([np.asarray(v, dtype=np.int64).ravel() for v in sets]) if sets else np.zeros(0, np.int64)
+    return flat, starts
+
+
+@numba.njit(cache=True)
+def _set_mean_nb(points, b, index, start, stop):
+    """Mean of points[b, index[start:stop]] (float64), summed in index order as numpy's mean over that axis."""
+    s0, s1, s2 = 0.0, 0.0, 0.0
+    for i in range(start, stop):
+        n = index[i]
+        s0 += points[b, n, 0]
+        s1 += points[b, n, 1]
+        s2 += points[b, n, 2]
+    k = stop - start
+    return s0 / k, s1 / k, s2 / k
+
+
+@numba.njit(cache=True)
+def _disc_moments_nb(points, lower, lower_at, upper, upper_at, centre, cov, towards):
+    """Per model b and disc d: centre[b, d] = mean of the lower endplate's vertices, cov[b, d] = the sum of
+    their outer products about it, towards[b, d] = mean of the upper endplate's vertices (float64).
+
+    The arithmetic of :func:`endplate_plane` (numpy's mean and einsum over the vertices, in vertex order), so
+    the planes are the same to the bit (tested), in one pass instead of 17 x 6 numpy calls per batch."""
+    for b in range(points.shape[0]):
+        for d in range(len(lower_at) - 1):
+            c0, c1, c2 = _set_mean_nb(points, b, lower, lower_at[d], lower_at[d + 1])
+            centre[b, d, 0], centre[b, d, 1], centre[b, d, 2] = c0, c1, c2
+            xx, xy, xz, yy, yz, zz = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for i in range(lower_at[d], lower_at[d + 1]):
+                n = lower[i]
+                x = points[b, n, 0] - c0
+                y = points[b, n, 1] - c1
+                z = points[b, n, 2] - c2
+                xx += x * x
+                xy += x * y
+                xz += x * z
+                yy += y * y
+                yz += y * z
+                zz += z * z
+            cov[b, d, 0, 0], cov[b, d, 0, 1], cov[b, d, 0, 2] = xx, xy, xz
+            cov[b, d, 1, 0], cov[b, d, 1, 1], cov[b, d, 1, 2] = xy, yy, yz
+            cov[b, d, 2, 0], cov[b, d, 2, 1], cov[b, d, 2, 2] = xz, yz, zz
+            towards[b, d, 0], towards[b, d, 1], towards[b, d, 2] = _set_mean_nb(
+                points, b, upper, upper_at[d], upper_at[d + 1]
+            )
+
+
+@numba.njit(cache=True)
+def _smallest_gaps_nb(points, upper, upper_at, centre, normal, gaps):
+    """gaps[b, d] = min over the upper endplate's vertices of (vertex - centre[b, d]) . normal[b, d]."""
+    for b in range(points.shape[0]):
+        for d in range(len(upper_at) - 1):
+            g = np.inf
+            for i in range(upper_at[d], upper_at[d + 1]):
+                n = upper[i]
+                v = (
+                    (points[b, n, 0] - centre[b, d, 0]) * normal[b, d, 0]
+                    + (points[b, n, 1] - centre[b, d, 1]) * normal[b, d, 1]
+                    + (points[b, n, 2] - centre[b, d, 2]) * normal[b, d, 2]
+                )
+                g = min(g, v)
+            gaps[b, d] = g
+
+
 def disc_gaps(points: np.ndarray, upper: list[np.ndarray], lower: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Smallest gap (B, D) mm of every disc: vertices ``upper[j]`` (the upper vertebra's inferior endplate)
-    over the plane of ``lower[j]`` (the lower endplate), negative = interpenetration; and the lower
-    endplates' normals (B, D, 3).  points (B, N, 3) mm."""
-    pts = np.asarray(points)
-    gaps = np.empty((len(pts), len(upper)))
-    normals = np.empty((len(pts), len(upper), 3))
-    for j, (up, lo) in enumerate(zip(upper, lower)):
-        centre, n = endplate_plane(pts, lo, pts[:, up].mean(axis=1))
-        gaps[:, j] = np.einsum("bkc,bc->bk", pts[:, up] - centre[:, None], n).min(axis=1)
-        normals[:, j] = n
-    return gaps, normals
+    over the plane of ``lower[j]`` (the lower endplate, :func:`endplate_plane`), negative = interpenetration;
+    and the lower endplates' normals (B, D, 3).  points (B, N, 3) mm.
+
+    Two numba passes and one batched ``eigh`` for all discs (0.15 instead of 0.6 s per 2,401-model shard),
+    the same numbers to the bit as ``endplate_plane`` disc by disc."""
+    pts = np.ascontiguousarray(points)
+    if pts.dtype not in (np.float32, np.float64):
+        pts = pts.astype(np.float64)
+    B, D = len(pts), len(upper)
+    lo, lo_at = _ragged(lower)
+    up, up_at = _ragged(upper)
+    centre, towards = np.empty((B, D, 3)), np.empty((B, D, 3))
+    cov = np.empty((B, D, 3, 3))
+    _disc_moments_nb(pts, lo, lo_at, up, up_at, centre, cov, towards)
+    _, vecs = np.linalg.eigh(cov)  # ascending: column 0 = plane normal
+    normal = np.ascontiguousarray(vecs[..., 0])
+    flip = np.einsum("bdc,bdc->bd", normal, towards - centre) < 0
+    normal[flip] *= -1.0
+    gaps = np.empty((B, D))
+    _smallest_gaps_nb(pts, up, up_at, centre, normal, gaps)
+    return gaps, normal
 
 
 def level_offsets(gaps: np.ndarray, normals: np.ndarray, min_height_mm: float) -> np.ndarray:
@@ -213,8 +293,9 @@ def _add_hex_offsets_nb(points, models, level, weight, off):
 
 
 @numba.njit(cache=True)
-def _add_tri_offsets_nb(points, models, tri_level, off):
-    """points[k, i] += off[k, tri_level[i]] (0 where tri_level is -1) for k in models, in place (float64)."""
+def add_level_offsets_nb(points, models, tri_level, off):
+    """points[k, i] += off[k, tri_level[i]] (0 where tri_level is -1) for k in models, in place (float64):
+    the tri vertices' distraction (or that of any rows of them, with their levels)."""
     for k in models:
         for n in range(points.shape[1]):
             lv = tri_level[n]
@@ -240,7 +321,7 @@ def resolve_contact(tri: np.ndarray | None, hexp: np.ndarray, cmap: ContactMap) 
                 if is_hex:
                     _add_hex_offsets_nb(pts, moved, *cmap.hex_sparse, off)
                 else:
-                    _add_tri_offsets_nb(pts, moved, np.ascontiguousarray(cmap.tri_level, dtype=np.int64), off)
+                    add_level_offsets_nb(pts, moved, np.ascontiguousarray(cmap.tri_level, dtype=np.int64), off)
             else:
                 dense = cmap.hex_offsets(off[moved]) if is_hex else cmap.tri_offsets(off[moved])
                 pts[moved] += dense.astype(pts.dtype)

@@ -1,16 +1,18 @@
 """Per-shard logic of the virtual-cohort stage: sample, check and repair, measure, store (one shard = one job).
 
 A shard is a contiguous model-ID range (``store.shard_range``).  ``process_shard`` makes one pass over it
-in batches of whole store chunks: it samples the triangulated and the hexahedral SSM (float64 formula plus
-the disc-contact distraction), checks every hex of every model and computes its Table 3 rows in one numba
-pass (``quality.model_quality``: each hex's corner Jacobians are formed once for both), untangles the
-models with inverted hexes exactly as ``models.hex_points_checked`` does (``repair.untangle`` against the
-hex mean, one ``UntangleContext`` per job; only those models are evaluated again), computes the
-spinopelvic parameters on those float64 coordinates, and hands the batch to the store's ``ShardWriter``;
-nothing is read back.  Memory is one batch (56 models x (81k tri + 11k hex volume nodes) x 3 x 8 B ~ 125 MB of
-float64), whatever the shard size.  Check and repair happen *before* the store write, so the store only ever
-holds the coordinates the FE models use; a model that cannot be repaired is kept as sampled and reported
-(``invalid_after > 0``).
+in batches of whole store chunks: it samples the hexahedral SSM's volume nodes and the triangulated SSM's
+landmark rows (float64 formula plus the disc-contact distraction), checks every hex of every model and
+computes its Table 3 rows in one numba pass (``quality.model_quality``: each hex's corner Jacobians are
+formed once for both), untangles the models with inverted hexes exactly as ``models.hex_points_checked``
+does (``repair.untangle`` against the hex mean, one ``UntangleContext`` per job; only those models are
+evaluated again), computes the spinopelvic parameters on those float64 coordinates, and hands the batch to
+the store's ``ShardWriter``: the hex volume as float64, the triangulated models as their formula
+(``LinearPoints``: the writer forms each store chunk straight in stored order, so the 81k-vertex models
+never exist in float64); nothing is read back.  Memory is one batch (56 models x (11k hex volume nodes +
+18k tri landmark rows) x 3 x 8 B ~ 39 MB of float64) and one store chunk, whatever the shard size.  Check
+and repair happen *before* the store write, so the store only ever holds the coordinates the FE models use;
+a model that cannot be repaired is kept as sampled and reported (``invalid_after > 0``).
 
 ``hex_landmarks`` builds a :class:`Landmarks` on the hex model's node numbering (hex nodes, then surface
 nodes), so ``measure.measure`` runs unchanged on the hex coordinates (in the shard pass on its landmark
@@ -31,16 +33,16 @@ import pandas as pd
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
 from spinecohort.measure.spinopelvic import measure
 from spinecohort.measure.tables import QUALITY_SUMMARY
-from spinecohort.mesh.contact import distraction_summary, resolve_contact
+from spinecohort.mesh.contact import add_level_offsets_nb, distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.quality import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
-from spinecohort.store.zarr_store import model_name
+from spinecohort.store.zarr_store import LinearPoints, linear_fields, model_name
 
-#: models sampled per float64 batch: 56 x 81k nodes x 3 x 8 B = 109 MB per array; 8 store chunks of 7 models, and
-#: a whole number of the quality kernel's vector lanes (``quality.LANES``), so no lane is padding
+#: models per batch: 8 store chunks of 7 models, and a whole number of the quality kernel's vector lanes
+#: (``quality.LANES``), so no lane is padding
 DEFAULT_CHUNK = 56
 
 
@@ -281,11 +283,23 @@ def process_shard(
         raise ValueError(
             f"the template's {n_vol} + {len(template.surface_vertex)} nodes are not the hex SSM's {len(hex_ssm.mean)}"
         )
-    # the mean as a sixth mode of weight 1: one BLAS pass writes mean + DF . b (the product's last FMA adds the
-    # mean, so the bits are those of the product plus the mean; 8.7 instead of 14.2 ms per 56 tri models).
-    # The surface nodes are tri vertices (transfer_fields copies their fields): only the volume nodes are formed
-    df_tri = np.vstack([ssm.deformation_fields(m).reshape(m, -1), ssm.mean.reshape(1, -1)])
+    # the hex volume and the tri landmark rows in float64 (the mean as a last mode of weight 1: one BLAS pass
+    # writes mean + DF . b, the product's last FMA adding the mean); the whole tri models only as the store
+    # holds them, chunk by chunk in the writer (LinearPoints: never a float64 tri batch, docs/store.md).
+    # The hex model is measured on its landmark rows: the volume ones from the hex volume, the surface ones
+    # (femoral heads, symphysis) from their tri vertices
+    hex_rows, hex_lm_rows = hex_lm.measured()
+    surface_vertex = np.asarray(template.surface_vertex)
+    vol_rows, skin_vertices = hex_rows[hex_rows < n_vol], surface_vertex[hex_rows[hex_rows >= n_vol] - n_vol]
+    tri_rows, tri_lm_rows = tri_landmarks.measured(extra=skin_vertices)
+    skin_rows = np.searchsorted(tri_rows, skin_vertices)
+    df_rows = np.vstack([ssm.deformation_fields(m)[:, tri_rows].reshape(m, -1), ssm.mean[tri_rows].reshape(1, -1)])
     df_vol = np.vstack([hex_ssm.fields[:m, :n_vol].reshape(m, -1), hex_ssm.mean[:n_vol].reshape(1, -1)])
+    tri_terms = linear_fields(ssm.mean, ssm.deformation_fields(m)) if writer is not None else None
+    contact = hex_ssm.contact
+    if contact is not None:
+        tri_level = np.ascontiguousarray(contact.tri_level, dtype=np.int64)
+        rows_level = tri_level[tri_rows]
     phases = ("sample", "quality", "measure", "write")
     # wall, CPU (user + system) and of it system (kernel) time per phase
     timing = {f"{k}{unit}": 0.0 for unit in ("_s", "_cpu_s", "_sys_s") for k in phases}
@@ -301,43 +315,39 @@ def process_shard(
 
     qi = _QualityInputs(template, hex_ssm)
     quality, p_tri, p_hex = [], [], []
-    # the hex model is measured on its landmark rows only: the volume ones from the hex volume, the surface
-    # ones (femoral heads, symphysis) from their tri vertices, so no batch-sized copy of the hex skin is made
-    hex_rows, hex_lm_rows = hex_lm.measured()
-    surface_vertex = np.asarray(template.surface_vertex)
-    vol_rows, skin_rows = hex_rows[hex_rows < n_vol], surface_vertex[hex_rows[hex_rows >= n_vol] - n_vol]
     hex_landmark_points = np.empty((min(batch, len(w)), len(hex_rows), 3))
-    # float64 batch buffers reused batch after batch: fresh ~100 MB arrays per batch cost more in page faults
-    # than the products that fill them
-    t_buf = np.empty((min(batch, len(w)), *ssm.mean.shape))
+    # float64 batch buffers reused batch after batch: fresh arrays per batch cost more in page faults than the
+    # products that fill them
+    r_buf = np.empty((min(batch, len(w)), len(tri_rows), 3))
     v_buf = np.empty((min(batch, len(w)), n_vol, 3))
-    # whole batches through every phase: one 7-model store chunk at a time from sampling to the write, to stay
-    # in the cache, saves ~2 s of the stage's 90 s CPU and splits every phase's calls by 8 (measured,
-    # docs/store.md "One pass per shard")
     for i in range(0, len(w), batch):
         wb, ib = w[i : i + batch], ids[i : i + batch]
         at = clock()
         w1 = np.hstack([wb, np.ones((len(wb), 1))])
-        t64, v64 = t_buf[: len(wb)], v_buf[: len(wb)]
-        np.matmul(w1, df_tri, out=t64.reshape(len(wb), -1))
+        r64, v64 = r_buf[: len(wb)], v_buf[: len(wb)]
+        np.matmul(w1, df_rows, out=r64.reshape(len(wb), -1))
         np.matmul(w1, df_vol, out=v64.reshape(len(wb), -1))
-        if hex_ssm.contact is not None:  # gaps and offsets come from the endplate (volume) nodes
-            gaps, offsets = resolve_contact(t64, v64, hex_ssm.contact)
+        offsets = None
+        if contact is not None:  # gaps and offsets come from the endplate (volume) nodes
+            gaps, offsets = resolve_contact(None, v64, contact)
+            moved = np.flatnonzero(np.abs(offsets).max(axis=(1, 2)) > 0)
+            add_level_offsets_nb(r64, moved, rows_level, offsets)
         at = tick("sample", at)
         # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds (the
         # hex skin is the tri surface, distracted or not: the store keeps it once, hex/surface_vertex)
         q, table3 = _quality_frames(ib, *_check_models(v64, qi, wb, ib, repair, log))
-        if hex_ssm.contact is not None:
+        if contact is not None:
             for key, v in distraction_summary(gaps, offsets).items():
                 q[key] = v
         quality.append(pd.concat([q, table3], axis=1))
         at = tick("quality", at)
-        p_tri.append(measure(t64, tri_landmarks, **measure_kw))
-        _landmark_rows_nb(v64, vol_rows, t64, skin_rows, hex_landmark_points[: len(wb)])
+        p_tri.append(measure(r64, tri_lm_rows, **measure_kw))
+        _landmark_rows_nb(v64, vol_rows, r64, skin_rows, hex_landmark_points[: len(wb)])
         p_hex.append(measure(hex_landmark_points[: len(wb)], hex_lm_rows, **measure_kw))
         at = tick("measure", at)
         if writer is not None:
-            writer.add(t64, v64)
+            tri = LinearPoints(tri_terms, wb, None if contact is None else tri_level, offsets)
+            writer.add(tri, v64)
         tick("write", at)
     p_tri = pd.concat(p_tri, ignore_index=True)
     p_hex = pd.concat(p_hex, ignore_index=True)
@@ -436,6 +446,22 @@ def shard_models_of(path, shard: int) -> tuple[np.ndarray, np.ndarray]:
     return ids, weights_of(ids, attrs["n_modes"], attrs["levels"])
 
 
+def _to_csv(frame: pd.DataFrame, path, float_format: str) -> None:
+    """``frame.to_csv(path, index=False, float_format=float_format)``, byte for byte (tested), with the float
+    columns formatted first by one list comprehension each: pandas calls a Python formatter and a NaN check per
+    value (0.25 of the 0.3 s a shard job spends closing)."""
+    cols = {}
+    for name, col in frame.items():
+        if pd.api.types.is_float_dtype(col.dtype):
+            values = col.to_numpy(dtype=np.float64)
+            text = np.array([float_format % v for v in values.tolist()], dtype=object)
+            text[np.isnan(values)] = ""
+            cols[name] = text
+        else:
+            cols[name] = col.to_numpy()
+    pd.DataFrame(cols, columns=frame.columns).to_csv(path, index=False)
+
+
 def run_shard_job(
     store,
     shard: int,
@@ -498,9 +524,9 @@ def run_shard_job(
         raise
     t1, c1 = time.perf_counter(), time.process_time()
     record = writer.close()
-    quality.to_csv(outputs["quality"], index=False, float_format="%.6g")
-    params.to_csv(outputs["params"], index=False, float_format="%.6f")
-    diff.to_csv(outputs["tri_vs_hex"], index=False, float_format="%.6g")
+    _to_csv(quality, outputs["quality"], "%.6g")
+    _to_csv(params, outputs["params"], "%.6f")
+    _to_csv(diff, outputs["tri_vs_hex"], "%.6g")
     wall = time.perf_counter() - t0
     record.update(
         timing,
