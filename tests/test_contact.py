@@ -35,12 +35,23 @@ def test_gap_of_parallel_and_tilted_plates():
     assert gaps[0, 0] == pytest.approx(1.0 - 10 * np.sin(np.radians(10)), abs=1e-12)
 
 
+def endplate_plane(points: np.ndarray, patch: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane of the vertices ``patch`` of every model: centre (B, 3) and unit normal (B, 3)
+    oriented towards ``towards`` (B, 3) (the other endplate's centre).  points (B, N, 3) mm."""
+    p = points[:, patch].astype(np.float64)
+    centre = p.mean(axis=1)
+    x = p - centre[:, None]
+    _, vecs = np.linalg.eigh(np.einsum("bki,bkj->bij", x, x))  # ascending: column 0 = plane normal
+    normal = vecs[:, :, 0]
+    flip = np.einsum("bc,bc->b", normal, towards - centre) < 0
+    normal[flip] *= -1.0
+    return centre, normal
+
+
 def test_batched_disc_gaps_equal_the_plane_fit_disc_by_disc_bit_for_bit():
     """disc_gaps fits all discs in one numba pass + one batched eigh; the reference is endplate_plane and the
     numpy gap, disc by disc.  Ragged sets (patches of 49, 30 and 12 vertices), float64 and float32 points far
     from the origin (0.4 m, where summation order would show), 5 models: identical to the bit."""
-    from spinecohort.mesh.contact import endplate_plane
-
     rng = np.random.default_rng(3)
     base = np.concatenate([plate(0.0), plate(5.0, 8.0), plate(11.0, -4.0), plate(16.0, 3.0)])
     pts = 400.0 + base[None] + rng.normal(0.0, 0.3, size=(5, len(base), 3))

@@ -189,6 +189,15 @@ def quantize_mm(x: np.ndarray, encoding: str = "float32-q10") -> np.ndarray:
     return (np.rint(np.asarray(x, dtype=np.float64) * scale) / scale).astype(np.float32)
 
 
+@numba.njit(cache=True, inline="always")
+def _stored_value_nb(x, quantize):
+    """The stored float32 value of one coordinate x mm: :func:`quantize_mm`'s rounding to 2^-10 mm in float64
+    (then exact in float32), or the nearest float32."""
+    if quantize:
+        return np.float32(np.rint(x * 2.0**QUANTUM_EXP)) * np.float32(2.0**-QUANTUM_EXP)
+    return np.float32(x)
+
+
 @numba.njit(cache=True)
 def _stored_chunks_nb(x, quantize, chunk, out):
     """The stored values of a batch x (B, N, 3) mm, chunk by chunk in stored order: out (K, 3, N, chunk)
@@ -201,8 +210,6 @@ def _stored_chunks_nb(x, quantize, chunk, out):
     the batch is ~1 GB of float64 per shard job's 49 models, so every pass over it costs.
     """
     B, N = x.shape[0], x.shape[1]
-    scale = 2.0**QUANTUM_EXP
-    inv = np.float32(2.0**-QUANTUM_EXP)
     lo, hi, finite = np.inf, -np.inf, True
     for k in range(out.shape[0]):
         for m in range(chunk):
@@ -214,7 +221,7 @@ def _stored_chunks_nb(x, quantize, chunk, out):
                 continue
             for n in range(N):
                 for c in range(3):
-                    v = np.float32(np.rint(x[b, n, c] * scale)) * inv if quantize else np.float32(x[b, n, c])
+                    v = _stored_value_nb(x[b, n, c], quantize)
                     out[k, c, n, m] = v
                     if not np.isfinite(v):
                         finite = False
@@ -254,19 +261,11 @@ def _linear_block_nb(fields, c, n0, nb, w, acc):
 def _stored_row_nb(acc, nb, quantize, lim, row):
     """row[:nb] = the stored float32 values of acc[:nb] mm (see :func:`quantize_mm`); returns how many are
     not finite or beyond +-lim mm (an integer count: it vectorizes, a min/max reduction would not)."""
-    scale = 2.0**QUANTUM_EXP
-    inv = np.float32(2.0**-QUANTUM_EXP)
     bad = 0
-    if quantize:
-        for i in range(nb):
-            v = np.float32(np.rint(acc[i] * scale)) * inv
-            row[i] = v
-            bad += not (abs(v) <= lim)
-    else:
-        for i in range(nb):
-            v = np.float32(acc[i])
-            row[i] = v
-            bad += not (abs(v) <= lim)
+    for i in range(nb):
+        v = _stored_value_nb(acc[i], quantize)
+        row[i] = v
+        bad += not (abs(v) <= lim)
     return bad
 
 
@@ -890,6 +889,7 @@ class ShardWriter:
             self._crc[name] = 0
             self._offset[name] = 0
         self._buffers = {}  # per array: float32 stored-order chunks of the largest batch so far
+        self._scratch = (np.empty((self.chunk, _LINEAR_BLOCK), np.float32), np.empty(_LINEAR_BLOCK))  # LinearPoints
         self.n_written = 0
         self.encode_cpu_s = 0.0  # CPU time in the codec alone (the benchmark's compression floor)
         self.stored_bytes = 0
@@ -948,9 +948,8 @@ class ShardWriter:
         for name, x in batch.items():
             if isinstance(x, LinearPoints):  # formed chunk by chunk, each encoded while it is in the cache
                 one = self._buffer(name, 1)[0]
-                scratch = (np.empty((self.chunk, _LINEAR_BLOCK), np.float32), np.empty(_LINEAR_BLOCK))
                 for j in range(n_chunks):
-                    if x.stored_chunk(j * self.chunk, quantize, self.meta["max_abs_mm"], one, scratch):
+                    if x.stored_chunk(j * self.chunk, quantize, self.meta["max_abs_mm"], one, self._scratch):
                         _check_range(name, self.shard, *_span(one), self.meta["max_abs_mm"])
                     self._append(name, first_slot + j, one)
             else:
