@@ -238,11 +238,11 @@ def explore(results: Layout, sample: str, measure_cfg: dict) -> None:
     import pandas as pd
     from numcodecs import Blosc, Zstd, blosc
 
-    from spinecohort.cohort.loading import load_cohort_npz
+    from spinecohort.cohort.landmarks import Landmarks
     from spinecohort.measure.spinopelvic import UNITS, measure
 
     blosc.set_nthreads(1)
-    landmarks = load_cohort_npz(results.cohort).landmarks
+    landmarks = Landmarks.from_cohort(results.cohort)
     kw = dict(
         vertical=measure_cfg["vertical_axis"], assumed_age=measure_cfg["assumed_age"], c7_proxy=measure_cfg["c7_proxy"]
     )

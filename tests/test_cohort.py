@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from spinecohort.cohort.landmarks import Landmarks
 from spinecohort.cohort.loading import CohortInputError, load_cohort, load_cohort_npz, save_cohort, write_cohort_folder
 from spinecohort.cohort.stl_io import write_stl
 
@@ -31,6 +32,9 @@ def test_folder_loads_and_round_trips_through_npz(folder, tmp_path, small_cohort
     assert np.array_equal(back.points, c.points) and back.ids == c.ids
     assert back.table["PI"].tolist() == pytest.approx(c.table["PI"].tolist())
     assert np.array_equal(back.landmarks.endplate_sup["S1"], c.landmarks.endplate_sup["S1"])
+    # the landmarks alone (what a shard job reads), without the meshes: the same index sets
+    alone = Landmarks.from_cohort(tmp_path / "c.npz")
+    assert alone.to_dict() == c.landmarks.to_dict()
 
 
 def test_nan_coordinates(folder, small_cohort):

@@ -52,7 +52,8 @@ def one_pass(tmp_path_factory, ssm, hex_ssm, template, small_cohort):
         ssm, hex_ssm, template, w, ids, lm, hex_landmarks(template, lm), writer=writer, batch=6
     )
     writer.close()
-    return path, ids, w, quality, params, diff
+    # the tables are columns (the job writes them without pandas); read them as a user does
+    return path, ids, w, pd.DataFrame(quality), pd.DataFrame(params), pd.DataFrame(diff)
 
 
 @pytest.fixture(scope="module")
@@ -99,8 +100,11 @@ def test_every_stored_model_has_positive_scaled_jacobians(shard1, template):
 def test_mean_model_measured_from_the_store_equals_the_ssm_mean(shard1, ssm, template, small_cohort):
     path, ids, w, _ = shard1
     lm = small_cohort.landmarks
-    params, diff = measure_shard(
-        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex"), w, ids, lm, hex_landmarks(template, lm)
+    params, diff = map(
+        pd.DataFrame,
+        measure_shard(
+            read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex"), w, ids, lm, hex_landmarks(template, lm)
+        ),
     )
     row = params.set_index("model_id").loc["model_00013"]
     truth = measure(ssm.mean, lm).iloc[0]
@@ -123,8 +127,11 @@ def test_parameters_of_the_one_pass_equal_those_of_the_stored_coordinates(one_pa
 
     path, ids, w, _, params, diff = one_pass
     lm = small_cohort.landmarks
-    again, diff_again = measure_shard(
-        read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex"), w, ids, lm, hex_landmarks(template, lm)
+    again, diff_again = map(
+        pd.DataFrame,
+        measure_shard(
+            read_shard(path, 1, "tri/points"), read_shard(path, 1, "hex"), w, ids, lm, hex_landmarks(template, lm)
+        ),
     )
     assert params["model_id"].tolist() == again["model_id"].tolist() == [f"model_{i:05d}" for i in range(9, 18)]
     checked = set()
@@ -174,11 +181,11 @@ def test_deliberately_inverted_elements_are_untangled(template, hex_ssm):
     bent = HexSSM(hex_ssm.mean, fields, hex_ssm.eigenvalues, "test")
     w = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     pts = bent.sample(w).astype(np.float32)
-    raw = check_and_repair(pts.copy(), template, bent, w, np.array([5, 6]), repair=False)
+    raw = pd.DataFrame(check_and_repair(pts.copy(), template, bent, w, np.array([5, 6]), repair=False))
     assert raw.loc[0, "invalid_before"] > 0 and raw.loc[0, "invalid_after"] == raw.loc[0, "invalid_before"]
     # the same decision as the plain scaled Jacobian of those coordinates
     assert raw["invalid_before"].tolist() == [int((scaled_jacobian(p[:n], template.hexes) <= 0).sum()) for p in pts]
-    q = check_and_repair(pts, template, bent, w, np.array([5, 6]))
+    q = pd.DataFrame(check_and_repair(pts, template, bent, w, np.array([5, 6])))
     assert q.loc[0, "invalid_before"] > 0 and q.loc[0, "invalid_after"] == 0 and q.loc[0, "repaired"]
     assert q.loc[0, "nodes_moved"] >= 1 and scaled_jacobian(pts[0, :n].astype(float), template.hexes).min() > 0
     # the valid model is untouched
@@ -285,28 +292,31 @@ def test_the_shard_job_does_not_import_what_it_never_calls():
     import subprocess
     import sys
 
-    heavy = ("pyvista", "vtk", "scipy.optimize", "scipy.sparse", "scipy.spatial")
+    heavy = ("pyvista", "vtk", "scipy.optimize", "scipy.sparse", "scipy.spatial", "pandas")
     code = f"import sys; import spinecohort.store.shards; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == []
 
 
 def test_shard_tables_are_written_as_pandas_writes_them(tmp_path):
-    """The shard job's CSV writer preformats the float columns; the bytes are pandas' to_csv with that
-    float_format (NaN empty, inf, ints, bools, quoted strings, a nullable string column with a missing value)."""
-    from spinecohort.store.shards import _to_csv
+    """The shard job writes its tables from columns without pandas; the bytes are pandas' to_csv of the same
+    columns with that float_format (NaN empty, inf, -0.0, ints, bools, quoted strings with commas, quotes and
+    line breaks, a missing string, an empty table)."""
+    from spinecohort.store.columns import concat_columns, write_csv
 
-    frame = pd.DataFrame(
-        {
-            "model_id": [3, 4, 5],
-            "angle": [1.23456789, np.nan, -np.inf],
-            "tiny": [1e-12, 123456789.0, -0.0],
-            "repaired": [True, False, True],
-            "repair_error": ["", 'model_00004: "x", y', "a\nb"],
-            "note": pd.array(["p", None, "r"], dtype="string"),
-        }
-    )
+    columns = {
+        "model_id": np.array([3, 4, 5]),
+        "angle": np.array([1.23456789, np.nan, -np.inf]),
+        "tiny": np.array([1e-12, 123456789.0, -0.0]),
+        "repaired": np.array([True, False, True]),
+        "repair_error": np.array(["", 'model_00004: "x", y', "a\nb"], dtype=object),
+        "note": np.array(["p", None, "r"], dtype=object),
+    }
+    halves = concat_columns([{k: v[:1] for k, v in columns.items()}, {k: v[1:] for k, v in columns.items()}])
     for fmt in ("%.6g", "%.6f"):
-        _to_csv(frame, tmp_path / "a.csv", fmt)
-        frame.to_csv(tmp_path / "b.csv", index=False, float_format=fmt)
-        assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes(), fmt
+        for cols in (columns, halves, {k: v[:0] for k, v in columns.items()}):
+            write_csv(cols, tmp_path / "a.csv", fmt)
+            pd.DataFrame(cols).to_csv(tmp_path / "b.csv", index=False, float_format=fmt)
+            assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes(), fmt
+    with pytest.raises(ValueError, match="columns of different lengths"):
+        write_csv({"a": np.zeros(2), "b": np.zeros(3)}, tmp_path / "c.csv", "%g")

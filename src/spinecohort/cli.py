@@ -207,7 +207,7 @@ def _query(args: argparse.Namespace) -> int:
 
 
 def _personalize(args: argparse.Namespace) -> int:
-    from spinecohort.cohort.loading import load_cohort_npz
+    from spinecohort.cohort.landmarks import Landmarks
     from spinecohort.measure.spinopelvic import UNITS
     from spinecohort.personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
     from spinecohort.ssm.model import SSM
@@ -233,7 +233,7 @@ def _personalize(args: argparse.Namespace) -> int:
             raise ValueError(f"{f} does not exist; run the pipeline (snakemake) up to the SSM first")
     model = build_model(
         SSM.load(layout.ssm),
-        load_cohort_npz(layout.cohort).landmarks,
+        Landmarks.from_cohort(layout.cohort),
         settings,
         {"vertical": m["vertical_axis"], "c7_proxy": m["c7_proxy"]},
     )

@@ -154,6 +154,13 @@ class Landmarks:
         Path(path).write_text(json.dumps(self.to_dict()))
 
     @classmethod
+    def from_cohort(cls, path: str | Path) -> Landmarks:
+        """The landmarks of a cohort .npz (``loading.save_cohort``) without reading its meshes: a shard job
+        needs these index sets only, not the 42 patients' 82 MB of points."""
+        with np.load(path, allow_pickle=False) as z:
+            return cls.from_dict(json.loads(str(z["landmarks_json"])))
+
+    @classmethod
     def load(cls, path: str | Path) -> Landmarks:
         try:
             d = json.loads(Path(path).read_text())

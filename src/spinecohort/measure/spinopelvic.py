@@ -24,13 +24,16 @@ numpy form (a gathered copy of every landmark vertex, a matmul per patch) cost 2
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
-import pandas as pd
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
 from spinecohort.measure import gap_score as _gap
+
+if TYPE_CHECKING:  # the shard jobs measure without pandas (measure_columns)
+    import pandas as pd
 
 C7_PROXIES = ("extrapolated", "T1")
 
@@ -426,7 +429,7 @@ def _extreme_rows_nb(pts, starts, stops, direction):
     return rows
 
 
-def measure(
+def measure_columns(
     points,
     landmarks: Landmarks,
     vertical=(0.0, 0.0, 1.0),
@@ -436,7 +439,7 @@ def measure(
     ldi_min_ll_deg: float = _gap.LDI_MIN_LL_DEG,
     ldi_undefined_points: float = 0.0,
     cobb_secondary_min_deg: float = 10.0,
-) -> pd.DataFrame:
+) -> dict[str, np.ndarray]:
     """Measure every spinopelvic parameter of a batch of models in correspondence.
 
     points: (B, N, 3) or (N, 3) vertex coordinates in mm (RAS); the landmark index sets name the vertices.
@@ -446,7 +449,8 @@ def measure(
         written to ``GT_proxy``.  ``SVA_C7est`` always uses the extrapolated centre, ``SVA_T1`` the T1 centre.
     ldi_min_ll_deg: LDI is NaN (``LDI_undefined``) where LL <= this.  ldi_undefined_points: LDI points there.
     cobb_secondary_min_deg: smallest secondary coronal curve reported in ``Cobb2``.
-    Returns a DataFrame with B rows; column units in :data:`UNITS`.
+    Returns the columns (B,) arrays in table order, column units in :data:`UNITS` (:func:`measure`: as a
+    DataFrame); the shard jobs keep them as arrays and never import pandas.
     """
     pts = np.asarray(points)
     if pts.dtype.kind not in "fiu":
@@ -528,7 +532,7 @@ def measure(
         "PI_minus_LL": pi - ll,
         "LL_minus_PI": ll - pi,
         "GT": global_tilt_deg(pt, c7, s1_c, ant, v),
-        "GT_proxy": [c7_proxy] * b,
+        "GT_proxy": np.full(b, c7_proxy, dtype=object),
         "GT_T1": global_tilt_deg(pt, t1c, s1_c, ant, v),
         "T1SPI": t1spi,
         "TPA": t1_pelvic_angle_deg(pt, t1spi),
@@ -597,7 +601,15 @@ def measure(
             "endplate_rms_max": rms_max,
         }
     )
-    return pd.DataFrame(out)
+    return out
+
+
+def measure(points, landmarks: Landmarks, **kwargs) -> pd.DataFrame:
+    """Every spinopelvic parameter of a batch of models (:func:`measure_columns`, same arguments) as a
+    DataFrame with B rows."""
+    import pandas as pd
+
+    return pd.DataFrame(measure_columns(points, landmarks, **kwargs))
 
 
 def measure_batch(points, landmarks: Landmarks | str | Path, vertical_axis=(0.0, 0.0, 1.0), **kwargs) -> pd.DataFrame:

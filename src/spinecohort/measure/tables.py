@@ -9,6 +9,7 @@ import pandas as pd
 
 from spinecohort.atomic import atomic_write
 from spinecohort.measure.spinopelvic import UNITS, parameter_table_header
+from spinecohort.store.columns import CONTACT_SUMMARY, QUALITY_SUMMARY
 
 NOTES = [
     ("model_id / ID", "", "virtual model index (sum over modes of (w_i + 3) * 7^(5 - i)) / patient ID"),
@@ -99,20 +100,6 @@ def write_descriptive_list(
             for cell in ws[1]:
                 cell.font = cell.font.copy(bold=True)
         pd.DataFrame(NOTES, columns=["columns", "unit", "definition"]).to_excel(xl, sheet_name="Notes", index=False)
-
-
-#: per-model quality columns of the shard tables carried into the virtual-cohort sheet
-QUALITY_SUMMARY = [
-    "min_sj_before",
-    "min_sj_after",
-    "invalid_before",
-    "invalid_after",
-    "nodes_moved",
-    "max_displacement_mm",
-    "repaired",
-]
-#: disc-contact columns (present when the hex SSM carries a contact map; spinecohort.mesh.contact)
-CONTACT_SUMMARY = ["min_disc_gap_before_mm", "discs_opened", "distraction_mm"]
 
 
 def virtual_cohort_table(params: list[pd.DataFrame], quality: list[pd.DataFrame]) -> pd.DataFrame:

@@ -28,9 +28,13 @@ in chunks of 8192 to stay in cache. The numba kernels (``*_nb``) are ~10-15x fas
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numba
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # tables only where asked for: the shard jobs never import pandas (store.columns)
+    import pandas as pd
 
 VERDICT_DBL_MAX = 1.0e30
 VERDICT_DBL_MIN = 1.0e-30
@@ -421,6 +425,8 @@ def table3_summary(metrics: dict[str, np.ndarray], part_of_element: np.ndarray) 
         row["pct_edge_ratio_gt_10"] = 100.0 * (m["edge_ratio"][:, sel] > 10).mean()
         row["pct_max_face_angle_gt_160"] = 100.0 * (m["max_face_angle_deg"][:, sel] > 160).mean()
         rows.append(row)
+    import pandas as pd
+
     return pd.DataFrame(rows)
 
 
@@ -951,4 +957,6 @@ def table3_per_model(
         for k, v in model_quality(points[i : i + chunk], hexes, part_of_element).items():
             if k.startswith(("pct_", "nodal_", "gauss_")):
                 cols.setdefault(k, []).append(v)
+    import pandas as pd
+
     return pd.DataFrame({k: np.concatenate(v) for k, v in cols.items()})

@@ -28,17 +28,16 @@ import warnings
 
 import numba
 import numpy as np
-import pandas as pd
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
-from spinecohort.measure.spinopelvic import measure
-from spinecohort.measure.tables import QUALITY_SUMMARY
+from spinecohort.measure.spinopelvic import measure_columns
 from spinecohort.mesh.contact import add_level_offsets_nb, distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.quality import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
+from spinecohort.store.columns import QUALITY_SUMMARY, Columns, concat_columns, write_csv
 from spinecohort.store.zarr_store import LinearPoints, linear_fields, model_name
 
 #: models per batch: 8 store chunks of 7 models, and a whole number of the quality kernel's vector lanes
@@ -96,7 +95,7 @@ def shard_quality(
     model_ids: np.ndarray,
     repair: bool = True,
     log=None,
-) -> tuple[pd.DataFrame, pd.DataFrame]:
+) -> tuple[Columns, Columns]:
     """Check every hex of every model, untangle the models with inverted hexes **in place**, and the seed's
     Table 3 rows: one ``quality.model_quality`` pass over the batch (the corner Jacobians of each hex are
     formed once for both), plus one more over the few repaired models.
@@ -114,7 +113,7 @@ def shard_quality(
     if hex_points.shape != (len(w), *hex_ssm.mean.shape):
         raise ValueError(f"hex_points must be {(len(w), *hex_ssm.mean.shape)}, got {hex_points.shape}")
     checked = _check_models(hex_points, _QualityInputs(template, hex_ssm), w, model_ids, repair, log)
-    return _quality_frames(model_ids, *checked)
+    return _quality_columns(model_ids, *checked)
 
 
 class _QualityInputs:
@@ -172,25 +171,26 @@ def _check_models(hex_points, qi: _QualityInputs, w, model_ids, repair, log) -> 
     return metrics, rep
 
 
-def _quality_frames(model_ids, metrics: dict, rep: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """(check rows, Table 3 rows) of ``_check_models``' arrays (see :func:`shard_quality`)."""
-    rows = pd.DataFrame(
-        {
-            "model_id": np.asarray(model_ids, dtype=np.int64),
-            "min_sj_before": metrics["min_sj_before"],
-            "invalid_before": metrics["invalid_before"],
-            **rep,
-        }
-    )
-    rows["min_sj_after"] = metrics["min_sj"]
-    rows["invalid_after"] = metrics["invalid"]
+def _quality_columns(model_ids, metrics: dict, rep: dict) -> tuple[Columns, Columns]:
+    """(check rows, Table 3 rows) of ``_check_models``' arrays (see :func:`shard_quality`): the summary
+    columns of the sheet first (spelled once, ``columns.QUALITY_SUMMARY``), then the repair error and the
+    per-tissue minima."""
+    rows = {
+        "model_id": np.asarray(model_ids, dtype=np.int64),
+        "min_sj_before": metrics["min_sj_before"],
+        "invalid_before": metrics["invalid_before"],
+        **rep,
+        "min_sj_after": metrics["min_sj"],
+        "invalid_after": metrics["invalid"],
+    }
     for key, v in metrics.items():
         if key.startswith("min_sj_") and key != "min_sj_before":
             rows[key] = v
-    cols = ["model_id", *QUALITY_SUMMARY, "repair_error"]  # the sheet's summary columns, spelled once
+    first = ["model_id", *QUALITY_SUMMARY, "repair_error"]
+    check = {k: rows[k] for k in first} | {k: v for k, v in rows.items() if k not in first}
     skip = ("min_sj", "invalid", "min_sj_before", "invalid_before")
-    table3 = pd.DataFrame({k: v for k, v in metrics.items() if k not in skip and k not in rows})
-    return rows[cols + [c for c in rows.columns if c not in cols]], table3
+    table3 = {k: v for k, v in metrics.items() if k not in skip and k not in rows}
+    return check, table3
 
 
 def check_and_repair(
@@ -201,36 +201,30 @@ def check_and_repair(
     model_ids: np.ndarray,
     repair: bool = True,
     log=None,
-) -> pd.DataFrame:
+) -> Columns:
     """The check rows of :func:`shard_quality` (scaled Jacobian of every hex, untangling in place)."""
     return shard_quality(hex_points, template, hex_ssm, weights, model_ids, repair, log)[0]
 
 
-def _param_diff(p_tri: pd.DataFrame, p_hex: pd.DataFrame) -> pd.DataFrame:
+def _param_diff(p_tri: Columns, p_hex: Columns) -> Columns:
     """Per numeric parameter: max and mean |tri - hex| over the models (NaN where a column is all NaN)."""
-    num = [
-        c for c in p_tri.columns if pd.api.types.is_numeric_dtype(p_tri[c]) and not pd.api.types.is_bool_dtype(p_tri[c])
-    ]
-    d = np.abs(p_tri[num].to_numpy(float) - p_hex[num].to_numpy(float))
+    num = [k for k, v in p_tri.items() if np.asarray(v).dtype.kind in "iuf"]  # not booleans, not strings
+    d = np.abs(np.stack([p_tri[k] for k in num], axis=1) - np.stack([p_hex[k] for k in num], axis=1))
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns (GAP without age) stay NaN
-        diff = pd.DataFrame(
-            {
-                "parameter": num,
-                "max_abs_diff": np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0),
-                "mean_abs_diff": np.nanmean(d, axis=0),
-            }
-        )
-    diff.loc[~np.isfinite(diff["max_abs_diff"]), "max_abs_diff"] = np.nan
-    return diff
+        largest = np.nanmax(np.where(np.isnan(d), -np.inf, d), axis=0)
+        mean = np.nanmean(d, axis=0)
+    return {
+        "parameter": np.array(num, dtype=object),
+        "max_abs_diff": np.where(np.isfinite(largest), largest, np.nan),
+        "mean_abs_diff": mean,
+    }
 
 
-def _params_table(weights: np.ndarray, model_ids: np.ndarray, p_tri: pd.DataFrame) -> pd.DataFrame:
+def _params_table(weights: np.ndarray, model_ids: np.ndarray, p_tri: Columns) -> Columns:
     w = np.asarray(weights, dtype=np.float64)
-    head = pd.DataFrame(
-        {"model_id": model_name(np.asarray(model_ids)), **{f"w{i + 1}": w[:, i] for i in range(w.shape[1])}}
-    )
-    return pd.concat([head, p_tri.reset_index(drop=True)], axis=1)
+    head = {"model_id": np.array(model_name(np.asarray(model_ids)), dtype=object)}
+    return head | {f"w{i + 1}": w[:, i] for i in range(w.shape[1])} | p_tri
 
 
 @numba.njit(cache=True)
@@ -261,7 +255,7 @@ def process_shard(
     repair: bool = True,
     log=None,
     **measure_kw,
-) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, dict]:
+) -> tuple[Columns, Columns, Columns, dict]:
     """One pass over a shard, batch by batch, nothing decoded again: sample (float64 SSM formula + disc
     contact) -> check every hex and its Table 3 rows, repair inverted models -> spinopelvic parameters of the
     tri and the hex model -> ``writer.add`` (a :class:`~spinecohort.store.zarr_store.ShardWriter`; None: no
@@ -335,23 +329,21 @@ def process_shard(
         at = tick("sample", at)
         # check, repair and the seed's Table 3 columns in one pass, on the coordinates the store holds (the
         # hex skin is the tri surface, distracted or not: the store keeps it once, hex/surface_vertex)
-        q, table3 = _quality_frames(ib, *_check_models(v64, qi, wb, ib, repair, log))
+        q, table3 = _quality_columns(ib, *_check_models(v64, qi, wb, ib, repair, log))
         if contact is not None:
-            for key, v in distraction_summary(gaps, offsets).items():
-                q[key] = v
-        quality.append(pd.concat([q, table3], axis=1))
+            q |= distraction_summary(gaps, offsets)
+        quality.append(q | table3)
         at = tick("quality", at)
-        p_tri.append(measure(r64, tri_lm_rows, **measure_kw))
+        p_tri.append(measure_columns(r64, tri_lm_rows, **measure_kw))
         _landmark_rows_nb(v64, vol_rows, r64, skin_rows, hex_landmark_points[: len(wb)])
-        p_hex.append(measure(hex_landmark_points[: len(wb)], hex_lm_rows, **measure_kw))
+        p_hex.append(measure_columns(hex_landmark_points[: len(wb)], hex_lm_rows, **measure_kw))
         at = tick("measure", at)
         if writer is not None:
             tri = LinearPoints(tri_terms, wb, None if contact is None else tri_level, offsets)
             writer.add(tri, v64)
         tick("write", at)
-    p_tri = pd.concat(p_tri, ignore_index=True)
-    p_hex = pd.concat(p_hex, ignore_index=True)
-    return pd.concat(quality, ignore_index=True), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
+    p_tri, p_hex = concat_columns(p_tri), concat_columns(p_hex)
+    return concat_columns(quality), _params_table(w, ids, p_tri), _param_diff(p_tri, p_hex), timing
 
 
 # ---------------------------------------------------------------------------------------- landmarks
@@ -419,7 +411,7 @@ def measure_shard(
     tri_landmarks: Landmarks,
     hex_lm: Landmarks,
     **measure_kw,
-) -> tuple[pd.DataFrame, pd.DataFrame]:
+) -> tuple[Columns, Columns]:
     """Parameters of given coordinates (e.g. a shard read back from the store) on the triangulated points,
     and their difference to the hex points: (params: model_id, w1..wm [SD], every parameter of ``measure``;
     tri_vs_hex: per numeric parameter, max and mean |tri - hex| over the models, in its unit)."""
@@ -429,8 +421,8 @@ def measure_shard(
             f"shard arrays disagree on the model count: weights {len(w)}, tri {len(tri)}, "
             f"hex {len(hexp)}, ids {len(model_ids)}"
         )
-    p_tri = measure(tri, tri_landmarks, **measure_kw)
-    p_hex = measure(hexp, hex_lm, **measure_kw)
+    p_tri = measure_columns(tri, tri_landmarks, **measure_kw)
+    p_hex = measure_columns(hexp, hex_lm, **measure_kw)
     return _params_table(w, model_ids, p_tri), _param_diff(p_tri, p_hex)
 
 
@@ -444,22 +436,6 @@ def shard_models_of(path, shard: int) -> tuple[np.ndarray, np.ndarray]:
     start, stop = shard_range(int(shard), attrs["shard_models"], attrs["n_models"])
     ids = np.arange(start, stop)
     return ids, weights_of(ids, attrs["n_modes"], attrs["levels"])
-
-
-def _to_csv(frame: pd.DataFrame, path, float_format: str) -> None:
-    """``frame.to_csv(path, index=False, float_format=float_format)``, byte for byte (tested), with the float
-    columns formatted first by one list comprehension each: pandas calls a Python formatter and a NaN check per
-    value (0.25 of the 0.3 s a shard job spends closing)."""
-    cols = {}
-    for name, col in frame.items():
-        if pd.api.types.is_float_dtype(col.dtype):
-            values = col.to_numpy(dtype=np.float64)
-            text = np.array([float_format % v for v in values.tolist()], dtype=object)
-            text[np.isnan(values)] = ""
-            cols[name] = text
-        else:
-            cols[name] = col.to_numpy()
-    pd.DataFrame(cols, columns=frame.columns).to_csv(path, index=False)
 
 
 def run_shard_job(
@@ -482,7 +458,6 @@ def run_shard_job(
 
     from numcodecs import blosc
 
-    from spinecohort.cohort.loading import load_cohort_npz
     from spinecohort.store.zarr_store import ShardWriter
 
     # the rule has threads: 1 (Snakemake sets OMP/OpenBLAS threads to it; blosc has its own pool)
@@ -491,8 +466,8 @@ def run_shard_job(
     store = Path(store)
     ids, weights = shard_models_of(store, shard)  # the store's own grid, not the config's
     template = HexTemplate.load(inputs["template"])
-    landmarks = load_cohort_npz(inputs["cohort"]).landmarks
-    ssm, hex_ssm = SSM.load(inputs["ssm"]), HexSSM.load(inputs["hex_ssm"])
+    landmarks = Landmarks.from_cohort(inputs["cohort"])  # the index sets only, not the patients' meshes
+    ssm, hex_ssm = SSM.load(inputs["ssm"], weights.shape[1]), HexSSM.load(inputs["hex_ssm"])
     writer = ShardWriter(store, shard)
     batch = -(-DEFAULT_CHUNK // writer.chunk) * writer.chunk  # whole store chunks per batch
     t_load, c_load = time.perf_counter(), time.process_time()
@@ -513,20 +488,20 @@ def run_shard_job(
             assumed_age=measure_settings["assumed_age"],
             c7_proxy=measure_settings["c7_proxy"],
         )
-        unrepaired = quality.loc[quality["invalid_after"] > 0]
+        unrepaired = np.flatnonzero(quality["invalid_after"] > 0)
         if len(unrepaired) and settings["fail_on_unrepaired"]:
             raise RuntimeError(
                 f"shard {shard}: {len(unrepaired)} models keep inverted hexes after repair: "
-                + "; ".join(unrepaired["repair_error"].astype(str).tolist()[:5])
+                + "; ".join(str(e) for e in quality["repair_error"][unrepaired[:5]])
             )
     except BaseException:
         writer.abort()
         raise
     t1, c1 = time.perf_counter(), time.process_time()
     record = writer.close()
-    _to_csv(quality, outputs["quality"], "%.6g")
-    _to_csv(params, outputs["params"], "%.6f")
-    _to_csv(diff, outputs["tri_vs_hex"], "%.6g")
+    write_csv(quality, outputs["quality"], "%.6g")
+    write_csv(params, outputs["params"], "%.6f")
+    write_csv(diff, outputs["tri_vs_hex"], "%.6g")
     wall = time.perf_counter() - t0
     record.update(
         timing,
@@ -541,7 +516,7 @@ def run_shard_job(
         wall_s=wall,
         models_per_s=len(ids) / wall,
         models_inverted=int((quality["invalid_before"] > 0).sum()),
-        models_distracted=int((quality.get("distraction_mm", 0) > 0).sum()),
+        models_distracted=int((np.asarray(quality.get("distraction_mm", 0)) > 0).sum()),
         models_repaired=int(quality["repaired"].sum()),
         models_unrepaired=len(unrepaired),
     )
@@ -561,6 +536,13 @@ def run_shard_job(
             wall,
             record["models_per_s"],
             record["stored_bytes"] / record["stored_nodes"],
-            diff.nlargest(3, "max_abs_diff").round(4).to_dict("records"),
+            _largest_differences(diff, 3),
         )
     return record
+
+
+def _largest_differences(diff: Columns, n: int) -> list[dict]:
+    """The n parameters with the largest max |tri - hex| (NaN last), rounded to 4 decimals, for the log."""
+    largest = np.asarray(diff["max_abs_diff"], dtype=float)
+    top = np.argsort(np.where(np.isnan(largest), -np.inf, -largest), kind="stable")[:n]
+    return [{k: (round(float(v[i]), 4) if k != "parameter" else v[i]) for k, v in diff.items()} for i in top]

@@ -236,25 +236,46 @@ _LINEAR_BLOCK = 512
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _linear_block_nb(fields, c, n0, nb, w, acc):
-    """acc[:nb] = sum_j w[j] * fields[j, c, n0:n0 + nb], three terms per pass over acc (fields (J, 3, N), J a
-    multiple of 3): the node loop is the vector loop, the terms stay in registers between passes."""
-    for j in range(0, fields.shape[0], 3):
-        ga, gb, gc = fields[j, c, n0 : n0 + nb], fields[j + 1, c, n0 : n0 + nb], fields[j + 2, c, n0 : n0 + nb]
-        wa, wb, wc = w[j], w[j + 1], w[j + 2]
-        if j == 0:
+def _fold_first3_nb(fields, c, n0, nb, w, acc):
+    """acc[:nb] = w[0] g0 + w[1] g1 + w[2] g2 (g_j = fields[j, c, n0:n0 + nb]): a product, then two
+    multiply-adds, the node loop the vector loop."""
+    ga, gb, gc = fields[0, c, n0 : n0 + nb], fields[1, c, n0 : n0 + nb], fields[2, c, n0 : n0 + nb]
+    wa, wb, wc = w[0], w[1], w[2]
+    for i in range(nb):
+        a = wa * ga[i]
+        a += wb * gb[i]
+        a += wc * gc[i]
+        acc[i] = a
+
+
+@numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def _fold_nb(fields, c, n0, nb, w, j0, j1, src, acc):
+    """acc[:nb] = src[:nb] + w[j] g_j for j = j0 .. j1 - 1 in that order, one multiply-add per term, at most
+    three terms per pass over acc (they stay in registers between passes).  src may be acc."""
+    for j in range(j0, j1, 3):
+        k = min(3, j1 - j)
+        ga, wa = fields[j, c, n0 : n0 + nb], w[j]
+        if k == 3:
+            gb, gc, wb, wc = fields[j + 1, c, n0 : n0 + nb], fields[j + 2, c, n0 : n0 + nb], w[j + 1], w[j + 2]
             for i in range(nb):
-                a = wa * ga[i]
-                a += wb * gb[i]
-                a += wc * gc[i]
-                acc[i] = a
-        else:
-            for i in range(nb):
-                a = acc[i]
+                a = src[i]
                 a += wa * ga[i]
                 a += wb * gb[i]
                 a += wc * gc[i]
                 acc[i] = a
+        elif k == 2:
+            gb, wb = fields[j + 1, c, n0 : n0 + nb], w[j + 1]
+            for i in range(nb):
+                a = src[i]
+                a += wa * ga[i]
+                a += wb * gb[i]
+                acc[i] = a
+        else:
+            for i in range(nb):
+                a = src[i]
+                a += wa * ga[i]
+                acc[i] = a
+        src = acc
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -291,30 +312,56 @@ def _interleave_nb(rows, nb, q):
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _linear_chunk_nb(fields, weights, level, offsets, moved, quantize, lim, out, rows, acc):
-    """One inner chunk in stored order, straight from the linear formula: out (3, N, C) float32 with
-    out[c, n, m] = stored value of sum_j weights[m, j] * fields[j, c, n] + offsets[m, level[n], c] (the
-    offset only where moved[m] and level[n] >= 0).  fields (J, 3, N) float64 mm, weights (C, J), level (N,),
-    offsets (C, L, 3) mm; rows (C, NB) float32 and acc (NB,) float64 are scratch.  Returns how many stored
-    values are not finite or beyond +-lim mm."""
-    N = fields.shape[2]
-    C = out.shape[2]
+def _linear_chunks_nb(fields, weights, shared, level, offsets, moved, quantize, lim, out, rows, acc, base):
+    """K inner chunks in stored order, straight from the linear formula: out (K, 3, N, C) float32 with
+    out[k, c, n, m] = stored value of sum_j weights[b, j] * fields[j, c, n] + offsets[b, level[n], c] for
+    model b = k C + m (the offset only where moved[b] and level[n] >= 0).  fields (J, 3, N) float64 mm,
+    weights (K C, J), shared (K,), level (N,), offsets (K C, L, 3) mm; rows (C, NB) float32, acc and base (NB,)
+    float64 are scratch.  Returns how many stored values are not finite or beyond +-lim mm.
+
+    The sum is a product then one multiply-add per term, in term order.  ``shared[k]`` (>= 3, or 0: none):
+    the first shared[k] weights are the same for chunk k's C models (the default grid's chunk runs along the
+    last mode), so that part of their sums is formed once per node block; the remaining terms continue it
+    model by model, the same operations in the same order as without sharing (the same bits).  The node
+    block is the outer loop, so the fields (11.7 MB for the default tri models) are read from memory once per
+    batch, not once per chunk."""
+    K, _, N, C = out.shape
+    J = fields.shape[0]
     NB = acc.shape[0]
     bad = 0
     for c in range(3):
-        q = out[c].reshape(N * C)
         for n0 in range(0, N, NB):
             nb = min(NB, N - n0)
-            for m in range(C):
-                _linear_block_nb(fields, c, n0, nb, weights[m], acc)
-                if moved[m]:  # the disc-contact distraction: one translation per level, after the formula
-                    for i in range(nb):
-                        lv = level[n0 + i]
-                        if lv >= 0:
-                            acc[i] += offsets[m, lv, c]
-                bad += _stored_row_nb(acc, nb, quantize, lim, rows[m])
-            _interleave_nb(rows, nb, q[n0 * C : (n0 + nb) * C])
+            for k in range(K):
+                s = shared[k]
+                if s:
+                    _fold_first3_nb(fields, c, n0, nb, weights[k * C], base)
+                    _fold_nb(fields, c, n0, nb, weights[k * C], 3, s, base, base)
+                for m in range(C):
+                    b = k * C + m
+                    if s:
+                        _fold_nb(fields, c, n0, nb, weights[b], s, J, base, acc)
+                    else:
+                        _fold_first3_nb(fields, c, n0, nb, weights[b], acc)
+                        _fold_nb(fields, c, n0, nb, weights[b], 3, J, acc, acc)
+                    if moved[b]:  # the disc-contact distraction: one translation per level, after the formula
+                        for i in range(nb):
+                            lv = level[n0 + i]
+                            if lv >= 0:
+                                acc[i] += offsets[b, lv, c]
+                    bad += _stored_row_nb(acc, nb, quantize, lim, rows[m])
+                q = out[k, c].reshape(N * C)
+                _interleave_nb(rows, nb, q[n0 * C : (n0 + nb) * C])
     return bad
+
+
+def _shared_terms(weights: np.ndarray) -> int:
+    """How many leading terms all rows of weights (C, J) weigh alike, as ``_linear_chunk_nb`` takes it: at
+    least 3 (its first pass forms three terms), at most J - 1 (each model adds one of its own), else 0."""
+    same = np.all(weights == weights[:1], axis=0)
+    k = len(same) if same.all() else int(np.argmin(same))
+    k = min(k, weights.shape[1] - 1)
+    return k if k >= 3 else 0
 
 
 def linear_fields(mean: np.ndarray, fields: np.ndarray) -> np.ndarray:
@@ -375,19 +422,23 @@ class LinearPoints:
     def __len__(self) -> int:
         return len(self.weights)
 
-    def stored_chunk(self, first: int, quantize: bool, max_abs_mm: float, out: np.ndarray, scratch) -> int:
-        """Models first .. first + C of the batch into ``out`` (3, N, C) float32 in stored order (models past
-        the batch: 0, the boundary chunk's fill value); returns the count of values not finite or beyond
-        max_abs_mm.  scratch: (rows (C, NB) float32, acc (NB,) float64)."""
-        C = out.shape[2]
-        sel = slice(first, first + C)
-        w, off, moved = self.weights[sel], self.offsets[sel], self.moved[sel]
-        if len(w) < C:  # zero weights, the mean's included: the model is 0.0 everywhere
-            pad = C - len(w)
+    def stored_chunks(self, quantize: bool, max_abs_mm: float, out: np.ndarray, scratch) -> int:
+        """The batch's models into ``out`` (K, 3, N, C) float32, inner chunk by inner chunk in stored order
+        (models past the batch: 0, the boundary chunk's fill value); returns the count of values not finite or
+        beyond max_abs_mm.  scratch: (rows (C, NB) float32, acc and base (NB,) float64)."""
+        K, C = out.shape[0], out.shape[3]
+        w, off, moved = self.weights, self.offsets, self.moved
+        pad = K * C - len(w)
+        if pad < 0:
+            raise ValueError(f"{len(w)} models do not fit {K} chunks of {C}")
+        if pad:  # zero weights, the mean's included: the model is 0.0 everywhere
             w = np.vstack([w, np.zeros((pad, w.shape[1]))])
             off = np.concatenate([off, np.zeros((pad, *off.shape[1:]))])
             moved = np.concatenate([moved, np.zeros(pad, bool)])
-        return _linear_chunk_nb(self.terms, w, self.level, off, moved, quantize, float(max_abs_mm), out, *scratch)
+        shared = np.array([_shared_terms(w[k * C : (k + 1) * C]) for k in range(K)], dtype=np.int64)
+        return _linear_chunks_nb(
+            self.terms, w, shared, self.level, off, moved, quantize, float(max_abs_mm), out, *scratch
+        )
 
 
 def _blosc_codecs(clevel: int) -> tuple[BloscCodec, Blosc]:
@@ -889,7 +940,11 @@ class ShardWriter:
             self._crc[name] = 0
             self._offset[name] = 0
         self._buffers = {}  # per array: float32 stored-order chunks of the largest batch so far
-        self._scratch = (np.empty((self.chunk, _LINEAR_BLOCK), np.float32), np.empty(_LINEAR_BLOCK))  # LinearPoints
+        self._scratch = (
+            np.empty((self.chunk, _LINEAR_BLOCK), np.float32),
+            np.empty(_LINEAR_BLOCK),
+            np.empty(_LINEAR_BLOCK),
+        )
         self.n_written = 0
         self.encode_cpu_s = 0.0  # CPU time in the codec alone (the benchmark's compression floor)
         self.stored_bytes = 0
@@ -932,29 +987,24 @@ class ShardWriter:
         n_chunks = -(-b // self.chunk)  # a partial last chunk is the array's boundary chunk, zero-filled
         quantize = self.meta["encoding"] == "float32-q10"
         values = {}
-        for name, x in batch.items():  # the float batches are rounded and checked before anything is encoded
+        for name, x in batch.items():  # every chunk of the batch is formed and checked before any is encoded
             want = (self.n_nodes[name], 3)
             if len(x.shape) != 3 or x.shape[1:] != want:
                 raise ValueError(f"{name} of shard {self.shard} must have shape (models, {want[0]}, 3), got {x.shape}")
-            if isinstance(x, LinearPoints):
+            values[name] = self._buffer(name, n_chunks)
+            if isinstance(x, LinearPoints):  # all chunks in one pass over the formula's terms
+                if x.stored_chunks(quantize, self.meta["max_abs_mm"], values[name], self._scratch):
+                    _check_range(name, self.shard, *_span(values[name]), self.meta["max_abs_mm"])
                 continue
             if not np.issubdtype(x.dtype, np.floating):
                 x = x.astype(np.float64)
-            values[name] = self._buffer(name, n_chunks)
             lo, hi, finite = _stored_chunks_nb(x, quantize, self.chunk, values[name])
             # checked on the stored float32 values (NaN and inf survive the rounding)
             _check_range(name, self.shard, lo, hi, finite, self.meta["max_abs_mm"])
         first_slot = self.n_written // self.chunk
-        for name, x in batch.items():
-            if isinstance(x, LinearPoints):  # formed chunk by chunk, each encoded while it is in the cache
-                one = self._buffer(name, 1)[0]
-                for j in range(n_chunks):
-                    if x.stored_chunk(j * self.chunk, quantize, self.meta["max_abs_mm"], one, self._scratch):
-                        _check_range(name, self.shard, *_span(one), self.meta["max_abs_mm"])
-                    self._append(name, first_slot + j, one)
-            else:
-                for j, c in enumerate(values[name]):  # c: one inner chunk, already in stored order
-                    self._append(name, first_slot + j, c)
+        for name in batch:
+            for j, c in enumerate(values[name]):  # c: one inner chunk, already in stored order
+                self._append(name, first_slot + j, c)
         self.n_written += b
 
     def _buffer(self, name: str, n_chunks: int) -> np.ndarray:

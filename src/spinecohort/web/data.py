@@ -538,13 +538,11 @@ class CohortData:
         if not self.can_fit:
             raise PlatformError("the continuous fit needs the results' cohort.npz and the config's personalize block")
         if self._fit_model is None:
-            from spinecohort.cohort.loading import load_cohort_npz
+            from spinecohort.cohort.landmarks import Landmarks
             from spinecohort.personalize import Settings, build_model
 
             settings = Settings.from_config(self.src.personalize, self.n_modes)
-            self._fit_model = build_model(
-                self.ssm, load_cohort_npz(self.src.cohort).landmarks, settings, self.src.measure
-            )
+            self._fit_model = build_model(self.ssm, Landmarks.from_cohort(self.src.cohort), settings, self.src.measure)
         return self._fit_model.fit(targets)
 
     def fitted_deck(self, targets: dict[str, float], res) -> bytes:
