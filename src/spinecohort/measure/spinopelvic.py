@@ -380,18 +380,15 @@ class _Block:
     """
 
     def __init__(self, points: np.ndarray, sets: dict[str, np.ndarray], origin: np.ndarray):
-        idx = [np.asarray(i).ravel() for i in sets.values()]
+        idx = [np.asarray(i, dtype=np.int64).ravel() for i in sets.values()]
         ends = np.cumsum([len(i) for i in idx])
         self.slices = {k: slice(e - len(i), e) for k, i, e in zip(sets, idx, ends)}
-        # gather first, convert after: a float32 (B, 95k, 3) batch is never copied whole; a float64 one is
-        # gathered once (the take is already a copy)
-        self.pts = np.take(points, np.concatenate(idx), axis=1).astype(float, copy=False)
-        if not np.isfinite(self.pts.sum()):
-            bad = ~np.isfinite(self.pts).all(axis=(0, 2))
-            first = int(np.argmax(bad))
+        # one pass: gather, to float64, relative to the origin (a float32 (B, 95k, 3) batch is never copied)
+        self.pts = np.empty((points.shape[0], int(ends[-1]) if len(ends) else 0, 3))
+        first = _gather_relative_nb(points, np.concatenate(idx), np.ascontiguousarray(origin, dtype=float), self.pts)
+        if first >= 0:
             name = next(k for k, sl in self.slices.items() if sl.start <= first < sl.stop)
             raise ValueError(f"non-finite coordinates in landmark set {name}")
-        self.pts -= origin[:, None, :]
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.pts[:, self.slices[name]]
@@ -406,6 +403,22 @@ class _Block:
         picked = np.take_along_axis(self.pts, rows.reshape(len(rows), -1)[:, :, None], axis=1)
         picked = picked.reshape(len(rows), len(names), 2, 3)
         return {k: (picked[:, j, 0], picked[:, j, 1]) for j, k in enumerate(names)}
+
+
+@numba.njit(cache=True)
+def _gather_relative_nb(points, rows, origin, out):
+    """out[b, i] = points[b, rows[i]] - origin[b] in float64 (B, len(rows), 3); returns the first i whose
+    gathered coordinates are not finite in some model, else -1."""
+    bad = rows.shape[0]
+    for b in range(points.shape[0]):
+        o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
+        for i in range(rows.shape[0]):
+            r = rows[i]
+            x, y, z = np.float64(points[b, r, 0]), np.float64(points[b, r, 1]), np.float64(points[b, r, 2])
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)) and i < bad:
+                bad = i
+            out[b, i, 0], out[b, i, 1], out[b, i, 2] = x - o0, y - o1, z - o2
+    return bad if bad < rows.shape[0] else -1
 
 
 @numba.njit(cache=True)

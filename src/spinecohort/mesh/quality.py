@@ -725,30 +725,27 @@ def model_quality_lanes_nb(XT, conn, part, n_parts, warn_sj, cos_warn_lo, cos_wa
     E = conn.shape[0]
     counts = np.zeros((n_parts, 4, B), dtype=np.int64)
     minima = np.full((n_parts, 3, B), np.inf)
-    P = np.empty((8, 3, B))  # the element's nodes, mm
-    ed = np.empty((12, 3, B))  # the element's 12 parametric edge vectors, mm
-    L = np.empty((12, B))  # their squared lengths, mm^2
+    # the element's 12 parametric edge vectors (x, y, z) and their squared lengths, mm and mm^2: one array, so
+    # that the loop forming them writes one array (one run-time alias check against the batch, not twelve)
+    ed = np.empty((12, 4, B))
     gx = np.empty((3, 4, 3, B))  # dX/du, dX/dv, dX/dw at the four Gauss (v, w), (u, w), (u, v) pairs
     sj, amin, amax, gmin, gmax = np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     degenerate, lo, hi = np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, np.bool_)
     over160, long_edge = np.empty(B, np.bool_), np.empty(B, np.bool_)
     lo2, hi2, c1602 = cos_warn_lo * cos_warn_lo, cos_warn_hi * cos_warn_hi, cos_160 * cos_160
     for e in range(E):
-        # the element's 8 nodes first (each read once from the batch, then from L1): 8 % faster than reading
-        # both ends of all 12 edges from the batch
-        for k in range(8):
-            node = conn[e, k]
-            for d in range(3):
-                for b in range(B):
-                    P[k, d, b] = XT[node, d, b]
+        # each edge straight from the batch rows of its two nodes (30 % faster than copying the element's 8
+        # nodes to a scratch array first, session 21)
         for k in range(12):
-            ni, nj = _PARAM_EDGES[k, 0], _PARAM_EDGES[k, 1]
+            ni, nj = conn[e, _PARAM_EDGES[k, 0]], conn[e, _PARAM_EDGES[k, 1]]
+            a0, a1, a2, b0, b1, b2 = XT[ni, 0], XT[ni, 1], XT[ni, 2], XT[nj, 0], XT[nj, 1], XT[nj, 2]
+            out = ed[k]
             for b in range(B):
-                x = P[nj, 0, b] - P[ni, 0, b]
-                y = P[nj, 1, b] - P[ni, 1, b]
-                z = P[nj, 2, b] - P[ni, 2, b]
-                ed[k, 0, b], ed[k, 1, b], ed[k, 2, b] = x, y, z
-                L[k, b] = x * x + y * y + z * z
+                x = b0[b] - a0[b]
+                y = b1[b] - a1[b]
+                z = b2[b] - a2[b]
+                out[0, b], out[1, b], out[2, b] = x, y, z
+                out[3, b] = x * x + y * y + z * z
         for b in range(B):
             sj[b], amin[b], amax[b] = VERDICT_DBL_MAX, np.inf, -np.inf
             degenerate[b], lo[b], hi[b], over160[b] = False, False, False, False
@@ -760,7 +757,7 @@ def model_quality_lanes_nb(XT, conn, part, n_parts, warn_sj, cos_warn_lo, cos_wa
                 a0, a1, a2 = ed[ka, 0, b], ed[ka, 1, b], ed[ka, 2, b]
                 b0, b1, b2 = ed[kb, 0, b], ed[kb, 1, b], ed[kb, 2, b]
                 c0, c1, c2 = ed[kc, 0, b], ed[kc, 1, b], ed[kc, 2, b]
-                la, lb, lc = L[ka, b], L[kb, b], L[kc, b]
+                la, lb, lc = ed[ka, 3, b], ed[kb, 3, b], ed[kc, 3, b]
                 al = sabc * _det3_nb(a0, a1, a2, b0, b1, b2, c0, c1, c2)
                 amin[b] = al if al < amin[b] else amin[b]
                 amax[b] = al if al > amax[b] else amax[b]
@@ -833,10 +830,10 @@ def model_quality_lanes_nb(XT, conn, part, n_parts, warn_sj, cos_warn_lo, cos_wa
         for b in range(B):
             gmin[b] = -VERDICT_DBL_MAX if gmax[b] <= VERDICT_DBL_MIN else gmin[b] / gmax[b]
         for b in range(B):
-            lmin, lmax = L[0, b], L[0, b]
+            lmin, lmax = ed[0, 3, b], ed[0, 3, b]
             for k in range(1, 12):
-                lmin = L[k, b] if L[k, b] < lmin else lmin
-                lmax = L[k, b] if L[k, b] > lmax else lmax
+                lmin = ed[k, 3, b] if ed[k, 3, b] < lmin else lmin
+                lmax = ed[k, 3, b] if ed[k, 3, b] > lmax else lmax
             long_edge[b] = lmax > 100.0 * lmin
         p = part[e]
         for b in range(B):

