@@ -14,8 +14,10 @@ own process with Snakemake's one-thread environment, ``--jobs`` at a time (the `
 * per job: wall, CPU (user + system, from ``wait4``), of it system, the write phase's system CPU, peak RSS,
   bytes per node, encode CPU, CPU per phase; the crc32c of every shard object (compare runs and versions);
 * bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
-  chain (transpose + blosc) and nothing else, measured in this run; the store stage's CPU / floor and the
-  write phase's CPU / floor;
+  chain (transpose + blosc) and nothing else, measured in this run as the jobs ran (a fresh process per
+  shard, ``--jobs`` at a time: the same sharing of caches and memory bandwidth) and once in this process
+  alone (which alone moved by +-8 % between identical runs, docs/store.md session 21); the store stage's
+  CPU / floor and the write phase's CPU / floor;
 * wall per shard job, peak RSS, and with ``--all`` the measured wall of the whole stage;
 * a cold read of one model's tri + hex coordinates (the shard files dropped from the page cache with
   ``posix_fadvise(DONTNEED)``, fresh process), and the same model read by tensorstore (a second Zarr v3
@@ -527,7 +529,11 @@ def main(argv=None) -> int:
         "--explore-orders", action="store_true", help="with --explore: node orders instead of codecs (docs/store.md)"
     )
     ap.add_argument("--explore-blocks", type=int, nargs="+", default=[224, 128, 512], help="blosc block KiB")
+    ap.add_argument("--floor-of", nargs=2, metavar=("STORE", "SHARD"), help=argparse.SUPPRESS)  # one floor process
     a = ap.parse_args(argv)
+    if a.floor_of:
+        print(codec_floor(Path(a.floor_of[0]), [int(a.floor_of[1])]))
+        return 0
     cfg = yaml.safe_load(Path(a.config).read_text())
     L = Layout(a.results)
     inputs = {"ssm": L.ssm, "hex_ssm": L.hex_ssm, "template": L.template, "cohort": L.cohort}
@@ -610,7 +616,11 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
         f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU (sys {chk['sys_s']:.1f}), {bad} shards "
         "flagged (unwritten ones)"
     )
-    floor = codec_floor(store, shards)
+    # the floor twice: in this process alone (as sessions 5-20 measured it), and as the jobs ran, one fresh
+    # process per shard, --jobs at a time: the codec's CPU under the same sharing of caches and memory bandwidth
+    floor_alone = codec_floor(store, shards)
+    runs = run_jobs([[sys.executable, __file__, "--floor-of", str(store), str(s)] for s in shards], a.jobs)
+    floor = sum(float(r["out"].split()[-1]) for r in runs)
     models = sum(r["models"][1] - r["models"][0] for r in records)
     stage_cpu = init["cpu_s"] + sum(j["cpu_s"] for j in jobs) + chk["cpu_s"]
     nbytes = sum(r["stored_bytes"] for r in records)
@@ -622,12 +632,13 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
     print(f"bytes per node: {nbytes / nodes:.3f} B/node (goal <= 5); {nbytes / 1e9:.2f} GB")
     print(
         f"compression floor (the stored values through transpose + blosc alone, this run): {floor:.2f} s CPU "
-        f"(the jobs' own encode CPU: {enc:.2f} s)"
+        f"measured as the jobs ran (a process per shard, {a.jobs} at a time); {floor_alone:.2f} s in one process "
+        f"alone (the jobs' own encode CPU: {enc:.2f} s)"
     )
     print(
         f"store-stage CPU (init + jobs + check): {stage_cpu:.1f} s -> CPU / floor = {stage_cpu / floor:.2f} "
-        f"(goal <= 1.5); write phase alone (rounding, range check, transpose, encode, crc32c, file writes): "
-        f"{write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
+        f"(goal <= 1.5; against the floor alone {stage_cpu / floor_alone:.2f}); write phase alone (rounding, range "
+        f"check, transpose, encode, crc32c, file writes): {write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
     )
     print(
         f"write phase kernel (sys) CPU, all jobs: {write_sys:.1f} s (shard objects written with O_DIRECT, around "
