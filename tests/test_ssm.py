@@ -117,8 +117,9 @@ def test_ssm_loads_only_its_leading_modes(small_cohort, tmp_path):
     assert np.array_equal(head.modes, full.modes[:2]) and np.array_equal(head.eigenvalues, full.eigenvalues[:2])
     assert np.array_equal(head.mean, full.mean) and head.n_modes == 2 and head.modes.flags.writeable
     assert np.array_equal(head.sample(np.ones((1, 2))), full.sample(np.ones((1, 2))))
-    np.savez_compressed(tmp_path / "z.npz", modes=full.modes)
+    np.savez_compressed(tmp_path / "z.npz", modes=full.modes, f=np.asfortranarray(full.modes))
     assert np.array_equal(npz_leading_rows(tmp_path / "z.npz", "modes", 3), full.modes[:3])
+    assert np.array_equal(npz_leading_rows(tmp_path / "z.npz", "f", 3), full.modes[:3])  # whole, then sliced
     for bad in (0, full.n_modes + 1):
         with pytest.raises(ValueError, match=rf"ssm\.npz: asked for {bad} modes, the SSM has {full.n_modes}"):
             SSM.load(tmp_path / "ssm.npz", n_modes=bad)

@@ -77,13 +77,15 @@ class SSM:
 
 def npz_leading_rows(path: str | Path, key: str, n_rows: int) -> np.ndarray:
     """``np.load(path)[key][:n_rows]`` reading only those rows: a C-ordered array's leading rows are a prefix
-    of its .npy member (stored or deflated alike: the member is read as a stream)."""
+    of its .npy member (stored or deflated alike: the member is read as a stream).  Any other array (Fortran
+    order, no rows, objects) is loaded whole and sliced."""
     with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fh:
         version = np.lib.format.read_magic(fh)
         read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         shape, fortran_order, dtype = read_header(fh)
         if fortran_order or not shape or dtype.hasobject:
-            raise ValueError(f"{path}: {key} is not a C-ordered numeric array with rows")
+            with np.load(path) as z:
+                return np.array(z[key][:n_rows])
         out = np.empty((min(n_rows, shape[0]), *shape[1:]), dtype=dtype)
         view = memoryview(out.reshape(-1).view(np.uint8))
         got = 0
