@@ -103,7 +103,8 @@ def shard_quality(
     hex_points (S, n_nodes, 3) mm: the coordinates to check, as they will be stored (``process_shard``
     passes its float64 batch: the SSM formula plus the disc-contact distraction); ``weights`` (S, m) SD
     and ``model_ids`` name the models.  Repaired models (``repair.untangle`` against the hex mean) are
-    written back into ``hex_points``.  Returns (check rows, Table 3 rows), one row per model.  Check rows:
+    written back into ``hex_points``.  Returns (check rows, Table 3 rows) as ``columns.Columns`` (ordered
+    name -> (S,) array; ``pandas.DataFrame`` of either is the table), one row per model.  Check rows:
     ``min_sj_before/after``, ``invalid_before/after`` (hexes with sJ <= 0), ``nodes_moved``,
     ``max_displacement_mm``, ``repaired``, ``repair_error`` (empty or the RepairError message) and
     ``min_sj_<tissue>`` (after repair); Table 3 rows: ``table3_per_model``'s columns, after repair.
@@ -263,7 +264,7 @@ def process_shard(
     its 2^-10 mm rounding.
 
     ``batch`` models per step (rounded up to whole store chunks by the caller); ``measure_kw``: vertical,
-    assumed_age, c7_proxy.  Returns (quality table, params table, tri-vs-hex table, timing: wall ``<phase>_s``
+    assumed_age, c7_proxy.  Returns (quality, params, tri-vs-hex tables as ``columns.Columns``, timing: wall ``<phase>_s``
     and CPU ``<phase>_cpu_s`` (of it kernel time ``<phase>_sys_s``) in s of the phases sample, quality (check +
     repair + Table 3), measure, write).
     """
