@@ -2,18 +2,21 @@
 # naming the bad shards and how to rebuild them.
 from pathlib import Path
 
-import pandas as pd
+import numpy as np
 
 from spinecohort.logs import to_file
+from spinecohort.store.columns import write_csv
 from spinecohort.store.zarr_store import shard_problems
 
 with to_file(snakemake.log[0]) as log:
     store = Path(snakemake.input.store).parent
     problems = shard_problems(store)
     shards = [int(Path(r).name.split(".")[0]) for r in snakemake.input.records]
-    table = pd.DataFrame(
-        {"shard": shards, "ok": [s not in problems for s in shards], "problem": [problems.get(s, "") for s in shards]}
-    )
+    table = {  # the store stage never imports pandas (store.columns writes the bytes pandas would)
+        "shard": np.array(shards, dtype=np.int64),
+        "ok": np.array([s not in problems for s in shards]),
+        "problem": np.array([problems.get(s, "") for s in shards], dtype=object),
+    }
     if problems:
         lines = "; ".join(f"shard {s:05d}: {why}" for s, why in sorted(problems.items()))
         raise RuntimeError(
@@ -21,5 +24,5 @@ with to_file(snakemake.log[0]) as log:
             f"`spinecohort check-store {store} --rebuild`, then snakemake again: it rewrites exactly "
             "those shards."
         )
-    table.to_csv(snakemake.output[0], index=False)
+    write_csv(table, snakemake.output[0], "%g")
     log.info("%s: all %d shards match their recorded crc32c", store, len(shards))
