@@ -196,6 +196,6 @@ def load_cohort_npz(path: str | Path) -> Cohort:
             ids=[str(s) for s in z["ids"]],
             points=z["points"],
             faces=z["faces"],
-            landmarks=Landmarks.from_dict(json.loads(str(z["landmarks_json"]))),
+            landmarks=Landmarks.from_cohort(path),
             table=pd.read_csv(io.StringIO(str(z["table_csv"])), dtype={"ID": str}),
         )

@@ -339,11 +339,11 @@ def _linear_chunks_nb(fields, weights, shared, level, offsets, moved, quantize, 
                     _fold_nb(fields, c, n0, nb, weights[k * C], 3, s, base, base)
                 for m in range(C):
                     b = k * C + m
-                    if s:
-                        _fold_nb(fields, c, n0, nb, weights[b], s, J, base, acc)
-                    else:
+                    src, j0 = base, s
+                    if not s:  # the model's own first three terms
                         _fold_first3_nb(fields, c, n0, nb, weights[b], acc)
-                        _fold_nb(fields, c, n0, nb, weights[b], 3, J, acc, acc)
+                        src, j0 = acc, 3
+                    _fold_nb(fields, c, n0, nb, weights[b], j0, J, src, acc)
                     if moved[b]:  # the disc-contact distraction: one translation per level, after the formula
                         for i in range(nb):
                             lv = level[n0 + i]
