@@ -2,12 +2,13 @@
 
     python benchmarks/bench_store.py [--results results] [--out DIR] [--shard-models 343] [--shards 0 24 48]
                                      [--all] [--jobs 2]
+    python benchmarks/bench_store.py --results results --all --jobs 2    # the store stage as the config cuts it
     python benchmarks/bench_store.py --explore [--explore-sample spread|corner] [--explore-orders]
 
 Needs the inputs of the shard jobs of a default-config run (``snakemake -j2 results/template/hex_ssm.npz``:
 ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a temporary folder under
 ``--out``, removed at the end) with the default grid (7^5 = 16,807 models) cut into shards of
-``--shard-models``, runs the listed shards (``--all``: every shard, i.e. the whole store stage) each as its
+``--shard-models`` (with ``--all`` by default the config's ``store.shard_models``, else 343), runs the listed shards (``--all``: every shard, i.e. the whole store stage) each as its
 own process with Snakemake's one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 ``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
@@ -163,7 +164,7 @@ def drop_from_page_cache(files) -> None:
 EXPLORE_SAMPLES = {
     # shard 0 of 343 models (w1 = w2 = -3, the most deformed corner), its first 49 models
     "corner": [np.arange(0, 49)],
-    # one 49-model batch (w3 = 0, w4 = -3..3, w5 = -3..3) from the middle of each default 2,401-model shard
+    # one 49-model batch (w3 = 0, w4 = -3..3, w5 = -3..3) from the middle of each level of w1 (2,401 models each)
     "spread": [np.arange(s * 2401 + 3 * 343 + 3 * 49, s * 2401 + 3 * 343 + 4 * 49) for s in range(7)],
 }
 _BIT, _BYTE = 2, 1  # numcodecs Blosc.BITSHUFFLE, Blosc.SHUFFLE
@@ -519,7 +520,11 @@ def main(argv=None) -> int:
     ap.add_argument("--results", default="results", help="results folder of a default-config run (inputs)")
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
     ap.add_argument("--out", help="folder for the benchmark's store and shard files (default: a temporary one)")
-    ap.add_argument("--shard-models", type=int, default=343, help="models per shard in this benchmark")
+    ap.add_argument(
+        "--shard-models",
+        type=int,
+        help="models per shard in this benchmark (default: the config's store.shard_models with --all, else 343)",
+    )
     ap.add_argument("--shards", type=int, nargs="+", default=[0, 24, 48])
     ap.add_argument("--all", action="store_true", help="every shard of the grid: the whole store stage")
     ap.add_argument("--jobs", type=int, default=1, help="shard jobs at a time (2 = snakemake -j2 on 2 cores)")
@@ -535,6 +540,8 @@ def main(argv=None) -> int:
         print(codec_floor(Path(a.floor_of[0]), [int(a.floor_of[1])]))
         return 0
     cfg = yaml.safe_load(Path(a.config).read_text())
+    if a.shard_models is None:  # the whole stage as the config cuts it; a quick sample in small shards
+        a.shard_models = cfg["store"]["shard_models"] if a.all else 343
     L = Layout(a.results)
     inputs = {"ssm": L.ssm, "hex_ssm": L.hex_ssm, "template": L.template, "cohort": L.cohort}
     for k, v in inputs.items():

@@ -7,11 +7,12 @@ import pytest
 from spinecohort.cli import main
 from spinecohort.cohort.landmarks import Landmarks
 from spinecohort.measure.spinopelvic import measure
-from spinecohort.measure.tables import parse_range, query_models, virtual_cohort_table
+from spinecohort.measure.tables import parse_range, query_models, tri_vs_hex_summary, virtual_cohort_table
 from spinecohort.mesh.hex_ssm import HexSSM, transfer_fields
 from spinecohort.mesh.quality import scaled_jacobian
 from spinecohort.mesh.repair import boundary_nodes
 from spinecohort.store.shards import (
+    _param_diff,
     check_and_repair,
     hex_landmarks,
     measure_shard,
@@ -198,6 +199,26 @@ def test_bad_weights_are_rejected(ssm, hex_ssm):
         sample_points(ssm, hex_ssm, np.zeros((2, 9)))
     with pytest.raises(ValueError, match="non-finite"):
         sample_points(ssm, hex_ssm, np.full((1, 3), np.nan))
+
+
+def test_tri_vs_hex_summary_pools_shards_of_unequal_size_by_their_models():
+    """The cohort's mean |tri - hex| is the mean over every model, whatever the shards' sizes (the default cut
+    is 8,407 + 8,400): shards of 5 and 2 models pooled give the mean of the 7 values, not of the two means."""
+    rng = np.random.default_rng(3)
+    tri = {"PI": rng.normal(50, 10, 7), "GAP": np.full(7, np.nan), "TK": rng.normal(40, 5, 7)}
+    hexp = {k: v + rng.normal(0, 1e-3, 7) for k, v in tri.items()}
+    hexp["TK"][[1, 5]] = np.nan  # a parameter a hex model could not measure: out of the mean and the count
+    cut = [slice(0, 5), slice(5, 7)]
+    shards = [pd.DataFrame(_param_diff({k: v[s] for k, v in tri.items()}, {k: v[s] for k, v in hexp.items()}))
+              for s in cut]  # fmt: skip
+    assert list(shards[0]["n_models"]) == [5, 0, 4] and list(shards[1]["n_models"]) == [2, 0, 1]
+    out = tri_vs_hex_summary(shards).set_index("parameter")
+    d = {k: np.abs(tri[k] - hexp[k]) for k in tri}
+    assert out.loc["PI", "mean_abs_diff"] == pytest.approx(d["PI"].mean(), rel=1e-12)
+    assert out.loc["TK", "mean_abs_diff"] == pytest.approx(np.nanmean(d["TK"]), rel=1e-12)
+    assert out.loc["PI", "max_abs_diff"] == d["PI"].max() and np.isnan(out.loc["GAP", "mean_abs_diff"])
+    # the unweighted mean of the two shard means is measurably different here (the test can fail)
+    assert abs(shards[0]["mean_abs_diff"][0] / 2 + shards[1]["mean_abs_diff"][0] / 2 - d["PI"].mean()) > 1e-6
 
 
 def test_parse_range_and_query():

@@ -208,7 +208,8 @@ def check_and_repair(
 
 
 def _param_diff(p_tri: Columns, p_hex: Columns) -> Columns:
-    """Per numeric parameter: max and mean |tri - hex| over the models (NaN where a column is all NaN)."""
+    """Per numeric parameter: max and mean |tri - hex| over the models (NaN where a column is all NaN) and
+    ``n_models``, how many models the mean is over (the cohort's mean pools the shards' means by it)."""
     num = [k for k, v in p_tri.items() if np.asarray(v).dtype.kind in "iuf"]  # not booleans, not strings
     d = np.abs(np.stack([p_tri[k] for k in num], axis=1) - np.stack([p_hex[k] for k in num], axis=1))
     with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -219,6 +220,7 @@ def _param_diff(p_tri: Columns, p_hex: Columns) -> Columns:
         "parameter": np.array(num, dtype=object),
         "max_abs_diff": np.where(np.isfinite(largest), largest, np.nan),
         "mean_abs_diff": mean,
+        "n_models": np.count_nonzero(~np.isnan(d), axis=0),
     }
 
 
