@@ -1,7 +1,7 @@
 """Benchmark of the virtual-cohort stage (init_store, sample_shard: one pass per shard) on the default config.
 
     python benchmarks/bench_cohort.py                      # the whole cohort (all shards + Descriptive_List)
-    python benchmarks/bench_cohort.py --shards 0,3         # a few shards only (extrapolated to all)
+    python benchmarks/bench_cohort.py --shards 0           # a few shards only (extrapolated to all)
 
 (The store stage alone, against the codec floor and at a reduced shard size: benchmarks/bench_store.py.)
 
