@@ -8,8 +8,9 @@
 Needs the inputs of the shard jobs of a default-config run (``snakemake -j2 results/template/hex_ssm.npz``:
 ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a temporary folder under
 ``--out``, removed at the end) with the default grid (7^5 = 16,807 models) cut into shards of
-``--shard-models`` (with ``--all`` by default the config's ``store.shard_models``, else 343), runs the listed shards (``--all``: every shard, i.e. the whole store stage) each as its
-own process with Snakemake's one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
+``--shard-models`` (with ``--all`` by default the config's ``store.shard_models``, else 343), runs the listed
+shards (``--all``: every shard, i.e. the whole store stage) each as its own process with Snakemake's
+one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 ``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
 
 * per job: wall, CPU (user + system, from ``wait4``), of it system, the write phase's system CPU, peak RSS,
