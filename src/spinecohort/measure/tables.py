@@ -126,14 +126,14 @@ def tri_vs_hex_summary(diffs: list[pd.DataFrame]) -> pd.DataFrame:
     means weighted by their ``n_models`` (shards differ in size: the default's 8,407 and 8,400 models; tables
     without the column, written before session 22, count alike)."""
     d = pd.concat(diffs, ignore_index=True)
-    n = d["n_models"] if "n_models" in d else pd.Series(1.0, index=d.index)
-    d = d.assign(_n=n.where(d["mean_abs_diff"].notna(), 0.0), _sum=d["mean_abs_diff"].fillna(0.0) * n)
+    n = d["n_models"] if "n_models" in d else d["mean_abs_diff"].notna().astype(float)  # 0 where the mean is NaN
+    d = d.assign(_n=n, _sum=d["mean_abs_diff"].fillna(0.0) * n)
     out = (
         d.groupby("parameter", sort=False)
         .agg(max_abs_diff=("max_abs_diff", "max"), _sum=("_sum", "sum"), _n=("_n", "sum"))
         .reset_index()
     )
-    out["mean_abs_diff"] = (out["_sum"] / out["_n"].where(out["_n"] > 0)).where(out["_n"] > 0)  # none: NaN
+    out["mean_abs_diff"] = out["_sum"] / out["_n"].where(out["_n"] > 0)  # no model measured it: NaN
     out = out.drop(columns=["_sum", "_n"])
     out.insert(1, "unit", [UNITS.get(c, "") for c in out["parameter"]])
     return out
