@@ -135,6 +135,22 @@ def test_synthetic_vertebra_closed_form():
             assert m[f"facet_{which}_sagittal_{side}"] == pytest.approx(s, abs=1e-6)
 
 
+def test_parts_from_region_labels():
+    """Region labels per vertex (names in label order) give the same parts as the vertex sets."""
+    pts, faces, parts, sup, inf = synthetic_vertebra()
+    names = ("sacrum",) + M.PARTS  # a label order with a non-vertebral region first
+    region = np.zeros(len(pts), int)
+    for name, idx in parts.items():
+        region[idx] = names.index(name)
+    other = np.zeros(len(pts), bool)
+    other[parts["lamina"]] = True  # a vertebra mask that leaves the lamina to another level
+    got = M.parts_of_vertebra(region, names, ~other)
+    assert set(got) == set(parts) - {"lamina"}
+    assert all(np.array_equal(got[k], parts[k]) for k in got)
+    with pytest.raises(ValueError, match="no vertex labeled 'body'"):
+        M.parts_of_vertebra(np.zeros(len(pts), int), names, ~other)
+
+
 def test_frame_is_the_vertebra_frame():
     """Anterior = body centre minus canal centre, superior = endplate normal, whatever the pose."""
     pts, faces, parts, sup, inf = synthetic_vertebra()

@@ -418,6 +418,24 @@ def measure_vertebra(
     return out
 
 
+def parts_of_vertebra(region: np.ndarray, region_names, vertebra: np.ndarray) -> dict[str, np.ndarray]:
+    """``parts`` for `measure_vertebra` from per-vertex region labels: name -> vertex indices of the vertices
+    of one vertebra (``vertebra``: (N,) mask) whose ``region`` index names a `PARTS` region in
+    ``region_names`` (the label order, e.g. ``spinecohort.anatomy.labels.REGIONS``); absent parts are left out."""
+    region = np.asarray(region)
+    vertebra = np.asarray(vertebra, bool)
+    names = list(region_names)
+    out = {}
+    for name in PARTS:
+        if name in names:
+            idx = np.flatnonzero(vertebra & (region == names.index(name)))
+            if idx.size:
+                out[name] = idx
+    if "body" not in out:
+        raise ValueError("the vertebra has no vertex labeled 'body'")
+    return out
+
+
 def measure_body(points_mm: np.ndarray, faces: np.ndarray, up_hint, anterior_hint) -> dict[str, float]:
     """Endplate widths/depths and body heights (mm) of an unlabeled vertebral body surface (closed, welded):
     endplates found by `endplate_sets`, the frame by `vertebra_frame` with ``anterior_hint``."""
