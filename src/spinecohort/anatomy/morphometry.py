@@ -436,6 +436,30 @@ def parts_of_vertebra(region: np.ndarray, region_names, vertebra: np.ndarray) ->
     return out
 
 
+def measure_spine(
+    points_mm: np.ndarray,
+    faces: np.ndarray,
+    region: np.ndarray,
+    level: np.ndarray,
+    region_names,
+    level_names,
+    endplates: Mapping[str, tuple[np.ndarray, np.ndarray]],
+) -> pd.DataFrame:
+    """Long table (level, quantity, value) of `measure_vertebra` for every level that has endplates.
+
+    ``region``, ``level``: (N,) per-vertex indices into ``region_names`` / ``level_names`` (-1: no level);
+    ``endplates``: level name -> (superior, inferior) endplate vertex indices.  The input of
+    `compare_with_reference`."""
+    level = np.asarray(level)
+    names = list(level_names)
+    rows = []
+    for lv, (sup, inf) in endplates.items():
+        parts = parts_of_vertebra(region, region_names, level == names.index(lv))
+        for quantity, value in measure_vertebra(points_mm, faces, parts, sup, inf).items():
+            rows.append({"level": lv, "quantity": quantity, "value": value})
+    return pd.DataFrame(rows, columns=["level", "quantity", "value"])
+
+
 def measure_body(points_mm: np.ndarray, faces: np.ndarray, up_hint, anterior_hint) -> dict[str, float]:
     """Endplate widths/depths and body heights (mm) of an unlabeled vertebral body surface (closed, welded):
     endplates found by `endplate_sets`, the frame by `vertebra_frame` with ``anterior_hint``."""
