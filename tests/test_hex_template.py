@@ -252,10 +252,11 @@ def test_hex_ssm_surface_nodes_follow_the_tri_ssm_exactly_and_smooth_inverts_les
 def test_a_partial_cep_unit_under_a_pure_moment_has_no_net_reaction_force(partial_cep_template, tmp_path):
     """A pure moment puts no net force on a model, so the potted lower vertebra's reaction forces sum to zero.
     The rim hexes of a partial CEP touch both potted vertebrae and tie their fibre springs' ends to those bones'
-    endplate nodes; with those nodes inside the *RIGID BODY and the fixed set, ccx 2.20 lost the ties' share
+    endplate nodes; with those nodes inside the *RIGID BODY and the fixed set, ccx 2.20 loses the ties' share
     of the force at the support (58 N of 'reaction' missing in the default mean's T10-T11 unit at 7.5 N.m) and
-    did not turn them with the rigid top (the T10-S1 model stalled at 69 % of flexion,
-    docs/explanation/fe-model.md).  The tie hosts now stay deformable nodes; the test-config mean's L3-L4 unit at 7.5 N.m flexion."""
+    does not turn them with the rigid top (the T10-S1 model stalls at 69 % of flexion,
+    docs/explanation/fe-model.md), so the tie hosts stay deformable nodes.  Checked on the test-config mean's L3-L4
+    unit at 7.5 N.m flexion."""
     from spinecohort.rom.run import run_case
     from spinecohort.rom.submodel import extract_rom_model
 
