@@ -28,7 +28,7 @@ for f in "${text_files[@]}"; do
     if [[ $f != CHANGELOG.md ]]; then
         hits+=$'\n'$(grep -nE "$issue_re" "$f" || true)
     fi
-    hits=$(sed '/^$/d' <<<"$hits")
+    hits=$(sed '/^$/d' <<<"$hits" | sort -t: -k1,1n -u)
     [[ -z $hits ]] && continue
     severity=error
     for p in "${history_report_only[@]}"; do
