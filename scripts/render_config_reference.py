@@ -62,9 +62,9 @@ def allowed(node: dict) -> str:
             parts.append(f"pattern `{src['pattern']}`")
     if "propertyNames" in node and "pattern" in node["propertyNames"]:
         parts.append(f"keys `{node['propertyNames']['pattern']}`")
-    for key, label in (("minItems", "items >="), ("maxItems", "items <="), ("minLength", "length >=")):
+    for key, label in (("minItems", ">= {} items"), ("maxItems", "<= {} items"), ("minLength", "length >= {}")):
         if key in node:
-            parts.append(f"{label} {node[key]}")
+            parts.append(label.format(node[key]))
     return "; ".join(parts)
 
 
@@ -81,12 +81,21 @@ def default_cell(value, present: bool | None) -> str:
         return "(absent)"
     text = json.dumps(value, ensure_ascii=False)
     if len(text) > MAX_DEFAULT_CHARS:
-        text = f"{len(value)} entries" if isinstance(value, (list, dict)) else text[: MAX_DEFAULT_CHARS - 1] + "…"
+        if isinstance(value, (list, dict)):
+            text = f"{len(value)} {'entry' if len(value) == 1 else 'entries'}"
+        else:
+            text = text[: MAX_DEFAULT_CHARS - 1] + "…"
     return f"`{text}`"
 
 
 def cell(text: str) -> str:
     return " ".join(str(text).split()).replace("|", "\\|")
+
+
+def prose(text: str) -> str:
+    """A description cell: angle brackets outside code spans escaped, so <disc> is shown, not read as HTML."""
+    parts = cell(text).split("`")
+    return "`".join(p if i % 2 else p.replace("<", "&lt;").replace(">", "&gt;") for i, p in enumerate(parts))
 
 
 def rows(node: dict, defs: dict, config, present: bool | None, prefix: str, required: set) -> list[str]:
@@ -100,7 +109,7 @@ def rows(node: dict, defs: dict, config, present: bool | None, prefix: str, requ
         need = "" if key in required else " (optional)"
         out.append(
             f"| `{name}`{need} | {cell(type_of(child))} | {cell(default_cell(value, has))} | "
-            f"{cell(allowed(child))} | {cell(child.get('description', ''))} |"
+            f"{cell(allowed(child))} | {prose(child.get('description', ''))} |"
         )
         if "properties" in child:
             out += rows(child, defs, value, has, f"{name}.", set(child.get("required", [])))
@@ -130,14 +139,14 @@ def render(schema: dict, config: dict) -> str:
     required = set(schema.get("required", []))
     for key, node in schema["properties"].items():
         node = resolve(node, defs)
-        lines += [f"## {key}", "", cell(node.get("description", "")), ""]
+        lines += [f"## {key}", "", prose(node.get("description", "")), ""]
         lines += ["| key | type | default | allowed | description |", "|---|---|---|---|---|"]
         has = key in config
         need = "" if key in required else " (optional)"
         if "properties" not in node:
             lines.append(
                 f"| `{key}`{need} | {cell(type_of(node))} | {cell(default_cell(config.get(key), has))} | "
-                f"{cell(allowed(node))} | {cell(node.get('description', ''))} |"
+                f"{cell(allowed(node))} | {prose(node.get('description', ''))} |"
             )
         else:
             lines += rows(node, defs, config.get(key), has, f"{key}.", set(node.get("required", [])))
