@@ -18,7 +18,7 @@ one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 * bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
   chain (transpose + blosc) and nothing else, measured in this run as the jobs ran (a fresh process per
   shard, ``--jobs`` at a time: the same sharing of caches and memory bandwidth) and once in this process
-  alone (which alone moved by +-8 % between identical runs, docs/store.md session 21); the store stage's
+  alone (which alone moved by +-8 % between identical runs); the store stage's
   CPU / floor and the write phase's CPU / floor;
 * wall per shard job, peak RSS, and with ``--all`` the measured wall of the whole stage;
 * a cold read of one model's tri + hex coordinates (the shard files dropped from the page cache with
@@ -28,10 +28,10 @@ one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 
 ``--explore`` (instead of the stage): bytes per node and encode speed of the alternative layouts and codecs
 (core Zarr v3 codecs only) on a sample of real models (``EXPLORE_SAMPLES``), and how far each coordinate
-rounding moves the measured parameters (docs/store.md).  ``--explore --explore-orders [--explore-blocks
+rounding moves the measured parameters (docs/explanation/performance.md).  ``--explore --explore-orders [--explore-blocks
 224 128 512]``: the chosen codec chain with the nodes of both arrays permuted into other orders
 (:func:`node_orders`: Morton, Hilbert, reverse Cuthill-McKee, anatomical parts, long axis, the template's
-rings and layers transposed), per blosc block size (docs/store.md, "Node order (session 8)").
+rings and layers transposed), per blosc block size (docs/explanation/performance.md).
 """
 
 from __future__ import annotations
@@ -532,7 +532,9 @@ def main(argv=None) -> int:
     ap.add_argument("--explore", action="store_true")
     ap.add_argument("--explore-sample", choices=sorted(EXPLORE_SAMPLES), default="spread")
     ap.add_argument(
-        "--explore-orders", action="store_true", help="with --explore: node orders instead of codecs (docs/store.md)"
+        "--explore-orders",
+        action="store_true",
+        help="with --explore: node orders instead of codecs (docs/explanation/performance.md)",
     )
     ap.add_argument("--explore-blocks", type=int, nargs="+", default=[224, 128, 512], help="blosc block KiB")
     ap.add_argument("--floor-of", nargs=2, metavar=("STORE", "SHARD"), help=argparse.SUPPRESS)  # one floor process

@@ -1,4 +1,4 @@
-"""The mode-study table of docs/rom.md as Markdown, from the rule's own output:
+"""The mode-study table of docs/explanation/fe-model.md as Markdown, from the rule's own output:
 
     .venv/bin/python scripts/modes_table.py [results/rom/modes.csv] > table.md
 

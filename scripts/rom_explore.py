@@ -1,5 +1,5 @@
 """Calibration explorer: the ROM of one model's functional units and/or lumbar model with config overrides,
-the way docs/rom.md's calibration sweeps were measured (the same `solve_model` and `validate` as the rules).
+the way docs/explanation/fe-model.md's calibration sweeps were measured (the same `solve_model` and `validate` as the rules).
 
     .venv/bin/python scripts/rom_explore.py OUT --units T2T3,T6T7,T10T11 [--lumbar] [--ribs]
         [--cases axial_left,axial_right] [--model model_08403] [--config config/config.yaml]
@@ -9,7 +9,7 @@ Overrides are dotted config paths with YAML values (``+a.b.c=value`` adds an opt
 e.g. ``+fe.annulus.fibres.k1_inner_mpa=1.17 +fe.annulus.fibres.k1_outer_mpa=1.8``); the deck is ``<results>/models/<model>.inp`` (make it
 with ``snakemake -j2 results/models/<model>.inp``).  Prints the validation rows of the solved extractions
 and the lumbar orderings; writes OUT/rom.csv (every ccx deck and log stays under OUT).  A unit case takes
-~4 s on the default mean, a lumbar-model case 160-400 s (session 12, spring fibres).
+~4 s on the default mean, a lumbar-model case 2-7 min on 2 cores.
 """
 
 from __future__ import annotations

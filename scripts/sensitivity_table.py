@@ -1,4 +1,4 @@
-"""The sensitivity table of docs/rom.md as Markdown, from the rule's own output:
+"""The sensitivity table of docs/explanation/fe-model.md as Markdown, from the rule's own output:
 
     .venv/bin/python scripts/sensitivity_table.py [results/rom/sensitivity.csv] > table.md
 

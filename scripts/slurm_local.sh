@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A real single-node SLURM on this machine (munge + slurmctld + slurmd on localhost), for trying the
 # `profiles/slurm` profile and for tests/test_slurm.py. Debian's slurm-wlm, no cgroups, no slurmdbd
-# (so use `--slurm-status-command squeue`; see docs/cluster.md).
+# (so use `--slurm-status-command squeue`; see docs/howto/slurm.md).
 #
 # Usage (as root):  scripts/slurm_local.sh start|stop|status   (install: the apt step of start alone)
 #   SLURM_LOCAL_DIR      scratch dir for state, spool, logs, PID files   [/tmp/spinecohort-slurm]

@@ -150,9 +150,9 @@ def test_the_exported_deck_solves_under_a_pure_moment(template, tmp_path):
     # The deck as `export` writes it (the test config's coarse model: 23,028 nodes, 64,598 elements; ccx
     # expands the S3 skins to 108,447 equations), plus a load step written here: pelvis fixed, T1's body rigid,
     # 6.25 N.mm flexion in one NLGEOM increment with the ROM's convergence controls (the full 7.5 N.m is far too
-    # long for CI).  Since the deck carries the facet gaps (session 5) a 25 N.mm increment diverges after 21
-    # iterations; 6.25 N.mm converges in 4-6 (session 15: one increment instead of four, ~1 min instead of 3).
-    # Before the connectors this deck diverged (displacement increments ~1e15 mm).
+    # long for CI).  With the facet contacts a 25 N.mm first increment diverges after 21 iterations; 6.25 N.mm
+    # converges in 4-6 (one increment: ~1 min).  Without the connectors this deck diverges (displacement
+    # increments ~1e15 mm).
     from spinecohort.fe.abaqus import format_id_list
     from spinecohort.fe.calculix import run_ccx
     from spinecohort.fe.facets import vertebra_frame
@@ -210,7 +210,7 @@ def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(te
         and "*CONTROLS, PARAMETERS=TIME INCREMENTATION\n" in text
     )
     # the top's rotation, the fixed nodes' reactions (their moment is the one the model carries:
-    # docs/moment_check.md) and the displacement field for a viewer
+    # docs/explanation/fe-model.md) and the displacement field for a viewer
     assert "*NODE PRINT, NSET=ROTTOP\nU\n*NODE PRINT, NSET=FIXED\nRF\n*NODE FILE\nU\n*END STEP\n" in text
     # the fixed set is the pelvis; the moment is 7.5 N.m about L1's anterior axis (right lateral bending)
     fixed = text.split("*NSET, NSET=FIXED\n")[1].split("*")[0]

@@ -169,7 +169,7 @@ def _confined_stress_mpa(c10: float, d1: float, stretch: float, volumetric: str)
 @pytest.mark.parametrize("volumetric", ["quadratic", "logarithmic"])
 def test_the_ground_substance_volume_terms_match_their_closed_forms_in_ccx(tmp_path, volumetric):
     # one unit hex, sides held, top pushed down to 40 % of its height (J = 0.4: the anterior rim hexes of a disc
-    # under a flexed vertebra reach ~0.44, docs/rom.md "Session 17"): the axial reaction per unit area is the
+    # under a flexed vertebra reach ~0.44, docs/explanation/fe-model.md): the axial reaction per unit area is the
     # closed-form stress.  At J = 0.4 the logarithmic term resists 1.45x as much as the quadratic one (4.21 vs
     # 2.90 MPa with the config's C10 0.225, D1 0.688); at small strain the two are the same law
     from spinecohort.fe.calculix import run_ccx

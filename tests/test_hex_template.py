@@ -84,7 +84,7 @@ def test_a_partial_cep_turns_the_rim_of_its_layers_into_annulus(partial_cep_temp
 
 def test_a_partial_cep_spaces_the_rim_of_every_disc_evenly(partial_cep_template):
     """Outside the cartilage the annulus reaches the bone through an ordinary element layer, not a 0.7 mm one
-    (docs/rom.md "Session 15": thin rim hexes invert next to the potted T10): at every rim node the first disc
+    (docs/explanation/fe-model.md: thin rim hexes invert next to the potted T10): at every rim node the first disc
     node layer sits 1/5 of the disc height from the endplate (5 element layers), at every cartilage node 0.7 mm."""
     from spinecohort.mesh.template import disc_runs
 
@@ -103,7 +103,7 @@ def test_a_partial_cep_spaces_the_rim_of_every_disc_evenly(partial_cep_template)
 
 
 def test_the_rim_insertion_is_fibred_annulus_in_the_bones_element(partial_cep_template):
-    """The deck of a partial-CEP template (docs/rom.md "Session 15"): the rim sets carry the annulus' ground
+    """The deck of a partial-CEP template (docs/explanation/fe-model.md): the rim sets carry the annulus' ground
     substance (material AF) and its fibre springs, which insert into the bone as in vivo, and sit in the bone's
     C3D8 block (not the C3D8R annulus block): 2 springs per annulus and rim hex, 17 discs x (3 + 2) x 32 hexes.
     Without the springs the 0.7 mm rim was a soft shear layer between the fibres and the bone (T2-T3 unit axial
@@ -252,10 +252,11 @@ def test_hex_ssm_surface_nodes_follow_the_tri_ssm_exactly_and_smooth_inverts_les
 def test_a_partial_cep_unit_under_a_pure_moment_has_no_net_reaction_force(partial_cep_template, tmp_path):
     """A pure moment puts no net force on a model, so the potted lower vertebra's reaction forces sum to zero.
     The rim hexes of a partial CEP touch both potted vertebrae and tie their fibre springs' ends to those bones'
-    endplate nodes; with those nodes inside the *RIGID BODY and the fixed set, ccx 2.20 lost the ties' share
+    endplate nodes; with those nodes inside the *RIGID BODY and the fixed set, ccx 2.20 loses the ties' share
     of the force at the support (58 N of 'reaction' missing in the default mean's T10-T11 unit at 7.5 N.m) and
-    did not turn them with the rigid top (the T10-S1 model stalled at 69 % of flexion, docs/rom.md "Session
-    16").  The tie hosts now stay deformable nodes; the test-config mean's L3-L4 unit at 7.5 N.m flexion."""
+    does not turn them with the rigid top (the T10-S1 model stalls at 69 % of flexion,
+    docs/explanation/fe-model.md), so the tie hosts stay deformable nodes.  Checked on the test-config mean's L3-L4
+    unit at 7.5 N.m flexion."""
     from spinecohort.rom.run import run_case
     from spinecohort.rom.submodel import extract_rom_model
 

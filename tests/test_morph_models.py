@@ -45,7 +45,7 @@ def test_the_default_morph_does_not_amplify_round_off(small_cohort):
     # config's morph (no BCPD layer on the interior): a 1e-12 mm perturbation of the mean moves no node by more
     # than 1e-9 mm, so the mean model is the same on every CPU.  With BCPD layers (the `morphed` fixture's
     # max_layers=2) the same perturbation moved interior nodes by up to 4.4 mm here and 3.4 mm on the default
-    # cohort (docs/hex_template.md "Reproducible morph"): the BLAS kernels decided the model.
+    # cohort (docs/explanation/hex-mesh.md): the BLAS kernels decided the model.
     ssm = build_ssm(procrustes_align(small_cohort.vertices).aligned)
     t = build_template(ssm.mean, small_cohort.faces, small_cohort.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
     noise = np.random.default_rng(1).normal(0, 1e-12, ssm.mean.shape)

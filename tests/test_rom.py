@@ -647,7 +647,7 @@ def test_the_extension_stop_limits_extension_and_leaves_flexion_alone(template, 
 def test_two_segments_in_series_rotate_as_each_does_alone(template, tmp_path):
     # A pure moment is the same at every level, so a segment must rotate as much inside a two-segment
     # model as alone.  With C3D8R everywhere ccx 2.20 failed this (L3-L4: 4.75 deg alone, 2.6 deg inside
-    # L2-L4 on the default mean; docs/rom.md); the configured elements (C3D8, annulus and nucleus C3D8R) pass.
+    # L2-L4 on the default mean; docs/explanation/fe-model.md); the configured elements (C3D8, annulus and nucleus C3D8R) pass.
     # Discs alone (no ligaments, no facets) at 7.5 N.m axial rotation, test-config mean.
     kw = dict(ligament_groups=(), hex_type="C3D8", disc_hex_type="C3D8R")
     alone = run_case(
@@ -682,7 +682,7 @@ def test_a_joint_high_in_a_chain_extends_as_it_does_alone(template, tmp_path, st
     # top of L1-L5 as alone, although L2 has turned with the three segments below it before L1-L2's extension
     # stops close.  A contact strut turns with its joint and passes; a GAPUNI between coincident nodes keeps
     # its direction fixed in space and fails (on the default mean's T10-S1 model it gave T10-T11 1.90 deg in
-    # the chain against 2.53 alone, docs/rom.md).  Test-config mean, calibrated materials, 7.5 N.m extension;
+    # the chain against 2.53 alone, docs/explanation/fe-model.md).  Test-config mean, calibrated materials, 7.5 N.m extension;
     # measured: L2 turned 8.6 deg; strut 2.80 alone / 2.85 in the chain (+1.8 %), GAPUNI 2.74 / 3.03 (+10 %).
     from dataclasses import replace
 
@@ -712,7 +712,7 @@ def test_disc_element_does_not_lock_a_nearly_incompressible_layer_in_bending(tmp
     # adding the pressure of a bonded incompressible strip (lubrication, 8 G b^5 L / (15 h^3), b = 10, L = 20),
     # 3000 + 5000 = 8000 (a square lets the material escape both ways, so less).  The converged mesh (C3D8I,
     # 16 x 16 x 8) gives ~7400; the disc element C3D8R at the template's coarse density (4 x 4 x 2) agrees to
-    # ~7 %, while a fully integrated C3D8 locks: ~24x too stiff (measured 170,500 N.mm/rad; docs/rom.md).
+    # ~7 %, while a fully integrated C3D8 locks: ~24x too stiff (measured 170,500 N.mm/rad; docs/explanation/fe-model.md).
     mat = [LinearElastic("NP", 0.9, 0.4992)]
 
     def stiffness(etype, nx, nz):
@@ -754,7 +754,7 @@ def test_the_fixation_carries_the_rot_node_load_as_a_generalised_force_and_the_c
     # axis (bending and torsion: the rotation vector is not parallel to the moment) turns ~20 deg.  ccx 2.20's
     # ROT NODE load is the generalised force conjugate to the rotation vector, Q = T(theta)^T M: the base
     # carries T^-T Q, off the intended moment by 2.5 %; with the corrected load (moment_iterations) it
-    # carries the intended moment (docs/moment_check.md).
+    # carries the intended moment (docs/explanation/fe-model.md).
     m = block_rom_model(["SOFT"], [LinearElastic("SOFT", 50.0, 0.3)])
     frame = Rotation.from_rotvec([0.5, -0.3, 0.4]).as_matrix()  # lateral, anterior, cranial columns: oblique
     m.frames["UP"] = m.frames["LO"] = frame
@@ -776,12 +776,12 @@ def test_the_fixation_carries_the_rot_node_load_as_a_generalised_force_and_the_c
 
 @needs_ccx
 def test_ccx_c3d8r_on_a_distorted_column_does_not_keep_moment_equilibrium(tmp_path):
-    # A known ccx 2.20 defect, kept here as a physics check (docs/moment_check.md): four 40 x 40 x 20 mm bone
+    # A known ccx 2.20 defect, kept here as a physics check (docs/explanation/fe-model.md): four 40 x 40 x 20 mm bone
     # blocks with three 10 mm Mooney-Rivlin "nucleus" layers (the calibrated NP: C10 0.12, C01 0.03,
     # D1 0.0111), the column curved and its nodes jittered like the spine's hexes, 75 N.mm lateral bending.
     # With C3D8 the base carries the applied moment (equilibrium); with C3D8R (the ROM's disc element) it
     # carries a fraction: the element's internal forces are not moment-free.  In the T10-S1 model the S1
-    # plate carries 87 % of 7.5 N.m (L2-S1: 96 %), the cause of the extent effect of docs/rom.md.
+    # plate carries 87 % of 7.5 N.m (L2-S1: 96 %), the cause of the extent effect of docs/explanation/fe-model.md.
     rng = np.random.default_rng(0)
     parts = ["B1", "N1", "B2", "N2", "B3", "N3", "B4"]
     mats = [LinearElastic(p, 12000.0, 0.3) if p[0] == "B" else MooneyRivlin(p, 0.12, 0.03, 0.0111) for p in parts]
@@ -799,7 +799,7 @@ def test_ccx_c3d8r_on_a_distorted_column_does_not_keep_moment_equilibrium(tmp_pa
         carried[etype] = r.carried_nmm[1] / 75.0
     assert carried["C3D8"] == pytest.approx(1.0, abs=2e-3)
     assert carried["C3D8R"] < 0.9  # measured 0.26
-    # the fix (docs/moment_check.md): the soft layers as C3D20R, tied to the C3D8 bone by midside equations,
+    # the fix (docs/explanation/fe-model.md): the soft layers as C3D20R, tied to the C3D8 bone by midside equations,
     # keep equilibrium like C3D8 without C3D8's locking
     m = block_rom_model(parts, mats, etype="C3D8", nz_per=(2,) * 7, lengths=(20, 10, 20, 10, 20, 10, 20), side=40.0)
     x, z = m.fe.nodes, m.fe.nodes[:, 2]
@@ -940,7 +940,7 @@ def test_rom_rules_solve_one_lumbar_unit_nonlinear(rom_run):
     r = rom_run / "results" / "rom"
     table = pd.read_csv(r / "model_00013.csv")
     # equilibrium: the fixed L4 carries the moment put on L3 (a functional unit leaks < 1 % through its C3D8R
-    # disc, docs/moment_check.md; the lumbar chain more)
+    # disc, docs/explanation/fe-model.md; the lumbar chain more)
     assert table["moment_carried_fraction"].between(0.99, 1.001).all(), table["moment_carried_fraction"].tolist()
     assert set(table["load_case"]) == {
         "flexion",
@@ -954,8 +954,8 @@ def test_rom_rules_solve_one_lumbar_unit_nonlinear(rom_run):
     rom = table.set_index("load_case")["rom_deg"]
     # every direction moves the way it is loaded, by a physiological amount (0.5..15 deg at 7.5 N.m)
     assert ((rom > 0.5) & (rom < 15)).all(), rom
-    # the 8-patient test mean is nearly left-right symmetric: lateral bending agreed to 1 % (2.90 vs 2.93
-    # deg) and axial rotation to 3 % (3.75 vs 3.64 deg) in session 3; allow 15 %
+    # the 8-patient test mean is nearly left-right symmetric (its two sides of lateral bending agree to ~1 %,
+    # of axial rotation to ~3 %); allow 15 %
     assert rom["lateral_left"] == pytest.approx(rom["lateral_right"], rel=0.15)
     assert rom["axial_left"] == pytest.approx(rom["axial_right"], rel=0.15)
     # the ccx decks and logs are kept; every run ended at the full load with a clean log
@@ -1034,7 +1034,7 @@ def test_rom_settings_from_the_config():
     assert s.moment_nmm == 7500.0 and len(s.load_cases) == 6
     assert s.deck_kw()["average_force_n"] == cfg["reference_force_n"]
     assert Settings.from_config({**cfg, "lumbar": {**cfg["lumbar"], "enabled": False}}).lumbar is None
-    # the lumbar model's top is guided (docs/rom.md "Session 17"); a config without the key keeps it free
+    # the lumbar model's top is guided (docs/explanation/fe-model.md); a config without the key keeps it free
     assert s.lumbar_guided is True
     assert (
         Settings.from_config({**cfg, "lumbar": {"enabled": True, "top": "T10", "bottom": "S1"}}).lumbar_guided is False
@@ -1209,7 +1209,7 @@ def test_a_stiffer_outer_annulus_ring_lowers_axial_rotation(template, tmp_path):
 @pytest.mark.parametrize("unit, case", [(("L3", "L4"), "flexion"), (("T2", "T3"), "lateral_left")])
 def test_a_guided_top_turns_about_the_load_axis_and_rotates_as_a_free_one(template, tmp_path, unit, case):
     # run_case's last attempt ties the top's rotation vector to the load's axis (the free T10-S1 flexion with the
-    # annulus at the bony rim stops at an out-of-plane bifurcation, docs/rom.md "Session 17").  Physics checked:
+    # annulus at the bony rim stops at an out-of-plane bifurcation, docs/explanation/fe-model.md).  Physics checked:
     # the top turns about the load's axis only (rotation vector parallel to the moment, to round-off), about an
     # axis near a global one (L3-L4 flexion) and one far from every global axis (T2-T3 lateral bending, 25.8 deg
     # off in the test model); where the free top converges its coupled rotations are small, so holding them

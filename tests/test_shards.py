@@ -309,7 +309,7 @@ def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, templ
 def test_the_shard_job_does_not_import_what_it_never_calls():
     """Start-up paid by every shard job: untangling (scipy.optimize, scipy.sparse, pyvista), template building
     (scipy.optimize, scipy.spatial.transform) and the hex-SSM transfer (scipy.spatial) import their modules
-    where they are used; measured ~0.8 s of the job's 1.9-2.3 s of imports (docs/store.md)."""
+    where they are used; measured ~0.8 s of the job's 1.9-2.3 s of imports (docs/reference/store-format.md)."""
     import subprocess
     import sys
 

@@ -76,7 +76,7 @@ def test_dag_produces_every_stage_output(test_run):
     assert linear.loc["smooth", "inverted_element_fraction"] < linear.loc["nearest", "inverted_element_fraction"] / 10
     # the disc-contact distraction (1 mm) never folds more models than the plain smooth transfer, and whatever
     # folds at the grid's extremes the shard repair untangles: no stored model keeps an inverted hex (the test
-    # mean without BCPD layers folds a few of its 27 before repair; the default grid 0 of 16,807, docs/store.md)
+    # mean without BCPD layers folds a few of its 27 before repair; the default grid 0 of 16,807, docs/reference/store-format.md)
     contact = transfer[transfer["disc_contact"] != "none"].set_index("method")
     assert contact.loc["smooth", "models_with_inverted"] <= linear.loc["smooth", "models_with_inverted"]
     assert (virtual["invalid_after"] == 0).all()

@@ -1,5 +1,5 @@
 # Stage 9: FE validation. Range of motion of one model under pure moments in CalculiX (lumbar model
-# pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/rom.md); the sensitivity of
+# pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/explanation/validation.md); the sensitivity of
 # the compared ROM to the calibrated parameters; the ROM of the mean and of each shape mode at its extremes.
 from spinecohort.rom.modes import mode_models, mode_rom_config
 from spinecohort.rom.run import solver_config

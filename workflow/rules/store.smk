@@ -59,7 +59,7 @@ rule sample_shard:
 
 # Integrity of the whole store against the sha256 recorded by each shard's writer: fails naming the bad
 # shards. `spinecohort check-store <store> --rebuild` then invalidates them and the next run rewrites
-# exactly those (docs/store.md). Rerun it on demand with `snakemake --forcerun check_store`.
+# exactly those (docs/reference/store-format.md). Rerun it on demand with `snakemake --forcerun check_store`.
 rule check_store:
     input:
         store=L.store_initialized,

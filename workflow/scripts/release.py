@@ -1,4 +1,4 @@
-# Adapter: build, verify and publish the release bag (spinecohort.release; docs/release.md).
+# Adapter: build, verify and publish the release bag (spinecohort.release; docs/howto/release.md).
 import io
 from pathlib import Path
 
