@@ -139,7 +139,7 @@ def in_browser(results: Path, config: Path, sessions: int, shot: Path | None) ->
     from selenium.webdriver.chrome.service import Service
 
     sys.path.insert(0, str(ROOT / "tests"))
-    from test_web import _canvas_pixels, _drawn_share, _type, _wait
+    from test_web_browser import _canvas_pixels, _drawn_share, _type, _wait
 
     port = _free_port()
     cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port)]
