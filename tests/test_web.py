@@ -214,7 +214,8 @@ def test_table_pages_sort_server_side(data):
 
 def test_serve_warns_when_listening_beyond_this_machine(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "spinecohort.cli", "serve", "--host", "0.0.0.0", "--results", str(tmp_path / "none")]
+        [sys.executable, "-m", "spinecohort.cli", "serve", "--host", "0.0.0.0", "--port", str(_free_port())]
+        + ["--results", str(tmp_path / "none")]
         + ["--config", str(REPO / "config" / "config.yaml")],
         capture_output=True,
         text=True,

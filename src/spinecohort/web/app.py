@@ -69,9 +69,9 @@ FORMATS_OF = {"grid": ["inp", "stl", "vtu"], "patient": ["inp"], "live": ["inp"]
 
 
 def _cell(v):
-    """A table value for the page: rounded floats, None for NaN, plain Python types."""
+    """A table value for the page: rounded floats, None for NaN, yes/no for flags, plain Python types."""
     if isinstance(v, (bool, np.bool_)):
-        return bool(v)
+        return "yes" if v else "no"
     if isinstance(v, (float, np.floating)):
         return None if not np.isfinite(v) else round(float(v), 2)
     if isinstance(v, (np.integer,)):
@@ -383,7 +383,11 @@ class Platform:
         self.ok()
         cols = list(targets)
         s.nearest = [
-            {"model_id": r["model_id"], "distance": round(float(r["distance"]), 2), **{c: _cell(r[c]) for c in cols}}
+            {
+                "model_id": r["model_id"],
+                "distance": round(float(r["distance"]), 2),
+                "values": "  ".join(f"{c} {r[c]:.1f}°" for c in cols if np.isfinite(r[c])),
+            }
             for _, r in near.iterrows()
         ]
         s.fit_weights = []

@@ -124,30 +124,72 @@ def parse_bound(text, name: str) -> float | None:
     return v
 
 
-def xlsx_bytes(table: pd.DataFrame, sheet: str = "selection", digits: int = 4) -> bytes:
-    """``table`` as an xlsx workbook of one sheet (header row, then values; floats rounded to ``digits``,
-    NaN as empty cells), written by openpyxl's write-only mode: row by row, without per-cell styles, which
-    is what makes pandas' ``to_excel`` slow on 16,807 rows."""
-    from openpyxl import Workbook
+_XLSX_PARTS = {
+    "[Content_Types].xml": '<?xml version="1.0" encoding="UTF-8" standalone="yes"?>'
+    '<Types xmlns="http://schemas.openxmlformats.org/package/2006/content-types">'
+    '<Default Extension="rels" ContentType="application/vnd.openxmlformats-package.relationships+xml"/>'
+    '<Default Extension="xml" ContentType="application/xml"/>'
+    '<Override PartName="/xl/workbook.xml" '
+    'ContentType="application/vnd.openxmlformats-officedocument.spreadsheetml.sheet.main+xml"/>'
+    '<Override PartName="/xl/worksheets/sheet1.xml" '
+    'ContentType="application/vnd.openxmlformats-officedocument.spreadsheetml.worksheet+xml"/></Types>',
+    "_rels/.rels": '<?xml version="1.0" encoding="UTF-8" standalone="yes"?>'
+    '<Relationships xmlns="http://schemas.openxmlformats.org/package/2006/relationships">'
+    '<Relationship Id="rId1" '
+    'Type="http://schemas.openxmlformats.org/officeDocument/2006/relationships/officeDocument" '
+    'Target="xl/workbook.xml"/></Relationships>',
+    "xl/_rels/workbook.xml.rels": '<?xml version="1.0" encoding="UTF-8" standalone="yes"?>'
+    '<Relationships xmlns="http://schemas.openxmlformats.org/package/2006/relationships">'
+    '<Relationship Id="rId1" '
+    'Type="http://schemas.openxmlformats.org/officeDocument/2006/relationships/worksheet" '
+    'Target="worksheets/sheet1.xml"/></Relationships>',
+}
 
-    wb = Workbook(write_only=True)
-    ws = wb.create_sheet(sheet)
-    ws.append([str(c) for c in table.columns])
-    cols = []
-    for c in table.columns:
-        v = table[c]
-        if v.dtype.kind == "f":
-            a = np.round(v.to_numpy(float), digits).astype(object)
-            a[~np.isfinite(v.to_numpy(float))] = None
-        elif v.dtype.kind in "iub":
-            a = v.to_numpy()  # tolist() gives Python ints and bools
-        else:
-            a = v.astype(object).where(v.notna(), None).to_numpy()
-        cols.append(a.tolist())
-    for row in zip(*cols):
-        ws.append(row)
+
+def _xlsx_cells(v: pd.Series, digits: int) -> np.ndarray:
+    """One column as SpreadsheetML cells (an object array of strings): numbers as values (NaN an empty
+    cell, which keeps the cells of the row in place), flags as booleans, the rest as inline text."""
+    from xml.sax.saxutils import escape
+
+    if v.dtype.kind == "b":
+        return np.where(v.to_numpy(), '<c t="b"><v>1</v></c>', '<c t="b"><v>0</v></c>').astype(object)
+    if v.dtype.kind in "iuf":
+        x = np.round(v.to_numpy(float), digits)
+        out = np.array(["<c><v>" + t + "</v></c>" for t in x.astype(str)], dtype=object)
+        out[~np.isfinite(x)] = "<c/>"
+        return out
+    text = v.astype(object).where(v.notna(), "").astype(str)
+    return np.array([f'<c t="inlineStr"><is><t>{escape(t)}</t></is></c>' if t else "<c/>" for t in text], object)
+
+
+def xlsx_bytes(table: pd.DataFrame, sheet: str = "selection", digits: int = 4) -> bytes:
+    """``table`` as an xlsx workbook of one sheet: a header row, then the values (floats rounded to
+    ``digits``, NaN as empty cells, flags as booleans).  The SpreadsheetML is written column by column
+    with numpy, which takes seconds for the 16,807 x 114 table where pandas' ``to_excel`` (openpyxl, one
+    styled cell object each) takes most of a minute."""
+    from xml.sax.saxutils import escape, quoteattr
+
+    cols = [_xlsx_cells(pd.Series([str(c) for c in table.columns], dtype=object), digits)]
+    body = [_xlsx_cells(table[c], digits) for c in table.columns]
+    rows = ["<row>" + "".join(cols[0]) + "</row>"]
+    rows += ["<row>" + "".join(r) + "</row>" for r in zip(*body)] if body else []
+    sheet_xml = (
+        '<?xml version="1.0" encoding="UTF-8" standalone="yes"?>'
+        '<worksheet xmlns="http://schemas.openxmlformats.org/spreadsheetml/2006/main"><sheetData>'
+        + "".join(rows)
+        + "</sheetData></worksheet>"
+    )
+    workbook = (
+        '<?xml version="1.0" encoding="UTF-8" standalone="yes"?>'
+        '<workbook xmlns="http://schemas.openxmlformats.org/spreadsheetml/2006/main" '
+        'xmlns:r="http://schemas.openxmlformats.org/officeDocument/2006/relationships">'
+        f'<sheets><sheet name={quoteattr(escape(sheet[:31]))} sheetId="1" r:id="rId1"/></sheets></workbook>'
+    )
     buf = io.BytesIO()
-    wb.save(buf)
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as z:
+        for name, xml in (*_XLSX_PARTS.items(), ("xl/workbook.xml", workbook)):
+            z.writestr(name, xml)
+        z.writestr("xl/worksheets/sheet1.xml", sheet_xml)
     return buf.getvalue()
 
 

@@ -80,7 +80,7 @@ def build_page(p):
                                 style="text-transform: none",
                             )
                         html.Td("d = {{ r.distance }}", classes="px-1")
-                        html.Td("PI {{ r.PI }}° PT {{ r.PT }}° SS {{ r.SS }}° LL {{ r.LL }}°")
+                        html.Td("{{ r.values }}")
                 html.Div("{{ fit_text }}", classes="text-caption", id="fit-text")
                 with html.Div(v_show="fit_weights.length"):
                     v.VBtn("show continuous model", click=p.show_fit, size="x-small", id="show-fit")
@@ -174,7 +174,7 @@ def build_page(p):
                     with v.VCol(cols=8):
                         html.Div("{{ shown }} {{ overlay_label }}", classes="text-body-2", id="shown")
                         with html.Div(
-                            style="height: max(360px, calc(100vh - 300px)); border: 1px solid #ddd; position: relative",
+                            style="height: max(340px, calc(100vh - 560px)); border: 1px solid #ddd; position: relative",
                             id="view-box",
                         ):
                             view = p.view = vtk_widgets.VtkLocalView(p.scene.window, ref="view")
@@ -187,22 +187,23 @@ def build_page(p):
                             )
                         with v.VRow(dense=True, classes="mt-1", id="sliders"):
                             for i in range(p.n_sliders):
-                                with v.VCol():
+                                with v.VCol(classes="py-0", title=explain("w1")):
+                                    html.Div(
+                                        f"shape mode {i + 1}: {{{{ Number(w_{i}).toFixed(2) }}}} SD",
+                                        classes="text-caption",
+                                    )
                                     v.VSlider(
                                         v_model=(f"w_{i}",),
                                         min=("-slider_lim",),
                                         max=("slider_lim",),
                                         step=0.05,
-                                        label=f"mode {i + 1}",
-                                        thumb_label=True,
                                         hide_details=True,
                                         density="compact",
                                         id=f"slider_{i}",
-                                        title=explain("w1"),
                                     )
                         html.Div(
-                            "shape-mode weights in SD; the sliders reshape the model live by the hex SSM's linear "
-                            "formula ({{ live_ms }} ms on the server)",
+                            "the sliders reshape the model live by the hex SSM's linear formula "
+                            "({{ live_ms }} ms on the server); a stored model's downloads have its mesh checks",
                             classes="text-caption",
                         )
                     with v.VCol(cols=4):
@@ -236,6 +237,8 @@ def build_page(p):
                             ):
                                 html.Span("{{ c.title }}")
                                 v.VIcon(v_if="isSorted(c)", icon=("getSortIcon(c)",), size="x-small")
+                    with v.Template(raw_attrs=['v-slot:item.weights="{ item }"']):
+                        html.Span("{{ item.weights }}", style="white-space: nowrap; font-family: monospace")
                     with v.Template(raw_attrs=['v-slot:item.model_id="{ item }"']):
                         v.VBtn(
                             "{{ item.model_id }}",
