@@ -178,7 +178,7 @@ def in_browser(results: Path, config: Path, sessions: int, shots: Path | None, c
     from test_web_browser import _canvas_pixels, _drawn_share, _type, _wait, chrome
 
     port = _free_port()
-    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port), "--max-sessions", str(sessions + 1)]
+    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port), "--max-sessions", str(sessions + 3)]
     cmd += ["--config", str(config), "--results", str(results)]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)

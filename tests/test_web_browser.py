@@ -362,6 +362,8 @@ def test_an_invalid_value_is_refused_and_the_other_session_is_unaffected(browser
     assert a.execute_script("return window.trame.state.get('f_gap')") == []  # A's page got the server's value
     a.execute_script("window.trame.state.set('w_0', 1e9)")
     _wait(lambda: "refused: w_0" in _text(a, "message"), 10, "the slider refusal")
+    a.execute_script("window.trame.trigger('download_zip', [1, 2, 3])")  # arguments no button sends
+    _wait(lambda: "refused a call from a browser: download_zip" in server["log"].read_text(), 10, "the call refusal")
     assert _text(a, "match-count") == before and _text(b, "match-count") == n_b
     _wait(lambda: "No data available" not in b.find_element("id", "table").text, 5, "B's rows")
     log = server["log"].read_text()

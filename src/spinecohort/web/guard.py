@@ -4,7 +4,8 @@ trame applies a client's ``trame.state.update`` to the server state as it comes;
 ever send the values below, but any client on the websocket can send anything.  :func:`state_rules`
 names each key a client may set with its check (type, length, range, allowed set); :func:`install`
 puts the check in front of trame's update: an update with an unknown key or a bad value is refused
-whole, logged as one line, and the client's page is reset to the server's values.
+whole, logged as one line, and the client's page is reset to the server's values; a call of a controller
+with arguments it does not take is refused the same way.
 """
 
 from __future__ import annotations
@@ -151,3 +152,14 @@ def install(server, rules: dict[str, Check], on_refuse: Callable[[str], None] | 
         return None
 
     CoreServer.update_state = update_state
+    called = CoreServer.trigger
+
+    @register("trame.trigger")
+    async def trigger(self, name, args, kwargs):
+        try:
+            return await called(self, name, args, kwargs)
+        except (TypeError, ValueError) as exc:  # arguments no button of the page sends
+            log.warning("refused a call from a browser: %s: %s", str(name)[:40], str(exc)[:200])
+            return None
+
+    CoreServer.trigger = trigger

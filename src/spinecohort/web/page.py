@@ -12,6 +12,8 @@ from __future__ import annotations
 from spinecohort.web.labels import explain, label, label_with_unit
 from spinecohort.web.scene import legend_entries
 
+#: the 3D view's height: most of a laptop screen, leaving a large screen room for the table under it
+VIEW_HEIGHT = "max(420px, calc(100vh - 520px))"
 MIME = {
     "inp": "text/plain",
     "stl": "application/octet-stream",
@@ -171,20 +173,14 @@ def build_page(p):
                     v.VBtn("mean", click=(p.set_overlay, "['mean']"), size="small", classes="ml-1", id="overlay-mean")
                     v.VBtn("clear", click=(p.set_overlay, "['none']"), size="small", classes="ml-1")
                 with v.VRow(dense=True):
-                    with v.VCol(cols=8):
+                    with v.VCol(cols=7):
                         html.Div("{{ shown }} {{ overlay_label }}", classes="text-body-2", id="shown")
-                        with html.Div(
-                            style="height: max(340px, calc(100vh - 560px)); border: 1px solid #ddd; position: relative",
-                            id="view-box",
-                        ):
-                            view = p.view = vtk_widgets.VtkLocalView(p.scene.window, ref="view")
-                            p.ctrl.view_update = view.update
-                            p.ctrl.view_reset_camera = view.reset_camera
-                            html.Div(
-                                "arrows: R right · A anterior · S superior; drag to turn, wheel to zoom",
-                                classes="text-caption",
-                                style="position: absolute; left: 6px; bottom: 2px; pointer-events: none",
-                            )
+                        with html.Div(style=f"height: {VIEW_HEIGHT}; border: 1px solid #ddd; display: flex"):
+                            _legend(html)
+                            with html.Div(style="flex: 1; position: relative", id="view-box"):
+                                view = p.view = vtk_widgets.VtkLocalView(p.scene.window, ref="view")
+                                p.ctrl.view_update = view.update
+                                p.ctrl.view_reset_camera = view.reset_camera
                         with v.VRow(dense=True, classes="mt-1", id="sliders"):
                             for i in range(p.n_sliders):
                                 with v.VCol(classes="py-0", title=explain("w1")):
@@ -206,7 +202,7 @@ def build_page(p):
                             "({{ live_ms }} ms on the server); a stored model's downloads have its mesh checks",
                             classes="text-caption",
                         )
-                    with v.VCol(cols=4):
+                    with v.VCol(cols=5, style=f"max-height: calc({VIEW_HEIGHT} + 130px); overflow-y: auto"):
                         _panel(p, html, v)
                 with v.VDataTableServer(
                     headers=("headers",),
@@ -314,13 +310,25 @@ def _panel(p, html, v) -> None:
         )
     v.VProgressLinear(model_value=("zip_progress",), v_show="zip_busy", height=8, id="zip-progress", color="primary")
     html.Div("{{ zip_text }}", v_show="zip_busy", classes="text-caption", id="zip-text")
-    v.VDivider(classes="my-2")
-    html.Div("Tissues", classes="text-subtitle-2")
-    with html.Div(classes="text-caption", id="legend", style="columns: 2; column-gap: 8px"):
+
+
+def _legend(html) -> None:
+    """The tissue colours of the view, in a strip at its left (outside the canvas)."""
+    with html.Div(
+        id="legend",
+        classes="pa-1",
+        style="width: 150px; overflow-y: auto; font-size: 11px; line-height: 1.25; border-right: 1px solid #eee",
+    ):
+        html.Div("Tissues", classes="font-weight-bold mb-1")
         for e in legend_entries():
-            with html.Div(style="break-inside: avoid"):
+            with html.Div(classes="mb-1", style="display: flex; align-items: flex-start"):
                 html.Span(
-                    style=f"display: inline-block; width: 10px; height: 10px; background: {e['colour']}; "
-                    "margin-right: 4px; border: 1px solid #999"
+                    style=f"flex: none; width: 10px; height: 10px; margin: 2px 4px 0 0; background: {e['colour']}; "
+                    "border: 1px solid #999"
                 )
                 html.Span(e["name"])
+        html.Div(
+            "Arrows: R right, A anterior, S superior. Drag to turn the model, wheel to zoom.",
+            classes="mt-2",
+            id="orientation-note",
+        )
