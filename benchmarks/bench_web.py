@@ -234,14 +234,18 @@ def in_browser(results: Path, config: Path, sessions: int, shots: Path | None, c
         print(f"{sessions} sessions open: {len(pids)} processes, total PSS {total:.0f} MB")
         for p, m in per:
             print(f"  pid {p}: RSS {m['rss']:.0f} MB, PSS {m['pss']:.0f} MB, private {m['uss']:.0f} MB")
-        print(f"  per session (total - no-session baseline) / {sessions}: {(total - base) / sessions:.0f} MB PSS")
+        own = [mem[p] for p in _sessions(proc.pid)[:sessions]]  # the assigned ones (the newest is the spare)
+        print(
+            f"  per session process: PSS {np.mean([m['pss'] for m in own]):.0f} MB, "
+            f"private {np.mean([m['uss'] for m in own]):.0f} MB (mean of {len(own)})"
+        )
         for d in drivers[1:]:  # five software-WebGL browsers on a small machine would slow the pictures
             d.quit()
         drivers[1:] = []
         if shots:
             screenshots(url, shots)
         if churn:
-            churn_memory(drv, proc.pid)
+            churn_memory(drv, proc.pid, yaml.safe_load(config.read_text())["grid"])
     finally:
         for d in drivers:
             d.quit()
@@ -249,7 +253,7 @@ def in_browser(results: Path, config: Path, sessions: int, shots: Path | None, c
         proc.wait(timeout=30)
 
 
-def churn_memory(drv, server_pid: int, n_select: int = 100, n_zip: int = 10) -> None:
+def churn_memory(drv, server_pid: int, grid: dict, n_select: int = 100, n_zip: int = 10) -> None:
     """Memory of the first session over ``n_select`` model selections and ``n_zip`` zips of 4 decks."""
     sys.path.insert(0, str(ROOT / "tests"))
     from spinecohort.store.zarr_store import n_models
@@ -258,7 +262,7 @@ def churn_memory(drv, server_pid: int, n_select: int = 100, n_zip: int = 10) -> 
     pid = _sessions(server_pid)[0]
     start = _mem_mb(pid)
     rng = np.random.default_rng(0)
-    n = n_models(5, [0] * 7)
+    n = n_models(grid["n_modes"], grid["levels"])
     t0 = time.perf_counter()
     for k, i in enumerate(rng.integers(0, n, n_select)):
         name = f"model_{i:05d}"

@@ -45,6 +45,11 @@ def build_page(p):
         layout.footer.hide()  # the framework's credit line would cover the table's last rows
         with layout.toolbar:
             v.VSpacer()
+            html.Div(
+                "{{ n_match.toLocaleString() }} of {{ n_total.toLocaleString() }} models match",
+                classes="text-subtitle-1 font-weight-medium mr-6",
+                id="match-count-top",
+            )
             html.Div("{{ title }}", classes="text-caption mr-4", id="data-title")
         with layout.drawer:
             with v.VContainer(classes="pa-2"):
@@ -198,8 +203,9 @@ def build_page(p):
                                         id=f"slider_{i}",
                                     )
                         html.Div(
-                            "the sliders reshape the model live by the hex SSM's linear formula "
-                            "({{ live_ms }} ms on the server); a stored model's downloads have its mesh checks",
+                            "the sliders reshape the model live by the hex SSM's linear formula"
+                            "{{ shown_kind === 'live' ? ' (' + live_ms + ' ms on the server)' : '' }}; "
+                            "a live shape's .inp has the mesh checks of a stored model",
                             classes="text-caption",
                         )
                     with v.VCol(cols=5, style=f"max-height: calc({VIEW_HEIGHT} + 130px); overflow-y: auto"):
@@ -233,6 +239,8 @@ def build_page(p):
                             ):
                                 html.Span("{{ c.title }}")
                                 v.VIcon(v_if="isSorted(c)", icon=("getSortIcon(c)",), size="x-small")
+                    with v.Template(raw_attrs=['v-slot:item.GAP_category="{ item }"']):
+                        html.Span("{{ item.GAP_category }}", style="white-space: nowrap")
                     with v.Template(raw_attrs=['v-slot:item.weights="{ item }"']):
                         html.Span("{{ item.weights }}", style="white-space: nowrap; font-family: monospace")
                     with v.Template(raw_attrs=['v-slot:item.model_id="{ item }"']):
