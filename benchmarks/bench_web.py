@@ -280,7 +280,7 @@ def churn_memory(drv, server_pid: int, grid: dict, n_select: int = 100, n_zip: i
             "window.__zip = null; window.trame.trigger('download_zip', []).then((b) => window.__zip = b)"
         )
         _wait(lambda: drv.execute_script("return window.__zip !== null"), 300, "the zip")
-        print(f"  zip {k + 1} of 4 decks: {time.perf_counter() - t:.1f} s, session RSS {_mem_mb(pid)['rss']:.0f} MB")
+        print(f"  zip {k + 1} (4 decks): {time.perf_counter() - t:.1f} s, session RSS {_mem_mb(pid)['rss']:.0f} MB")
     end = _mem_mb(pid)
     print(f"session memory over {n_select} selections + {n_zip} zips: RSS {start['rss']:.0f} -> {end['rss']:.0f} MB")
 
