@@ -1,6 +1,7 @@
-"""The cohort platform at full scale: start time, filter latency on 16,807 rows, slider latency, server RSS.
+"""The cohort platform at full scale: start time, filter and slider latency, xlsx time, memory per session.
 
     python benchmarks/bench_web.py [--work DIR] [--results DIR --config FILE] [--sessions 5] [--no-browser]
+                                   [--screenshots DIR] [--churn]
 
 Without ``--results`` it builds a stand-in results folder at the default scale: a real SSM of 6 synthetic
 patients at the default surface resolution, the coarse hex template on its mean (64k nodes, 105k surface
@@ -9,10 +10,13 @@ triangles: the default model's size) with its hex SSM of 5 modes, and a **fabric
 numbers are then those of the default scale, not of a real run's values.
 
 Measures in-process: data load, page construction, filter latency (``filter_mask`` alone and the whole
-page update: filter + sorted page of rows + histograms), the live shape (hex SSM formula + scene update).
-With Chromium (``/usr/bin/chromium``): ``spinecohort serve`` start time to the first HTTP answer and to a
-drawn 3D view, filter latency seen in the browser, the slider's server-side time (sample + serialise +
-publish) and its end-to-end time to a changed canvas, and the server's RSS with 1 and N sessions open.
+page update: filter + sorted page of rows + histograms), the xlsx of the whole table, the live shape (hex
+SSM formula + scene update).  With Chromium (``/usr/bin/chromium``): ``spinecohort serve`` start time to
+the first HTTP answer and to a drawn 3D view, filter latency seen in the browser, the slider's server-side
+time (sample + serialise + publish) and its end-to-end time to a changed canvas, and the memory (RSS, PSS,
+private) of every process with N browser sessions open, each in its own Chromium.  ``--screenshots`` saves
+the page at 1366 x 768 and 1920 x 1080; ``--churn`` follows one session's memory over 100 selections and
+10 zips.
 """
 
 from __future__ import annotations
@@ -116,6 +120,16 @@ def in_process(results: Path, config: Path) -> None:
         page.apply_filter()
 
     print(f"page update (filter + sorted page + 9 histograms): {median_ms(full):.1f} ms (median)")
+    all_rows = np.ones(len(data.table), bool)
+    t = time.perf_counter()
+    n_bytes = len(data.table_file(all_rows, "xlsx")[1])
+    print(
+        f"xlsx of the whole table ({len(data.table):,} rows, {data.table.shape[1]} columns): {time.perf_counter() - t:.1f} s, {n_bytes / 1e6:.1f} MB"
+    )
+    if data.workbook is not None:
+        t = time.perf_counter()
+        n_bytes = len(data.workbook_bytes())
+        print(f"the prepared Descriptive_List.xlsx: {1e3 * (time.perf_counter() - t):.0f} ms, {n_bytes / 1e6:.1f} MB")
     w = np.array([1.0, -0.5, 0.3, 0.0, 2.0])[: data.hex_ssm.fields.shape[0]]
     ms = median_ms(lambda: page.scene.show(data.live_points(w)))
     print(f"live shape ({data.template.n_nodes:,} nodes): hex SSM formula + scene points {ms:.1f} ms (median)")
@@ -127,42 +141,59 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+def _mem_mb(pid: int) -> dict[str, float]:
+    """RSS, PSS (shared pages split between the processes that map them) and USS (private pages) in MB."""
+    out = {}
+    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+        k, _, rest = line.partition(":")
+        if k in ("Rss", "Pss", "Private_Clean", "Private_Dirty"):
+            out[k] = int(rest.split()[0]) / 1024
+    return {"rss": out["Rss"], "pss": out["Pss"], "uss": out["Private_Clean"] + out["Private_Dirty"]}
 
 
-def in_browser(results: Path, config: Path, sessions: int, shot: Path | None) -> None:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
+def _tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants (the launcher, its session starter and the sessions)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        for task in Path(f"/proc/{p}/task").iterdir():
+            kids = (task / "children").read_text().split()
+            todo += [int(k) for k in kids]
+    return out
 
+
+def _children(pid: int) -> list[int]:
+    return [int(k) for task in Path(f"/proc/{pid}/task").iterdir() for k in (task / "children").read_text().split()]
+
+
+def _sessions(server_pid: int) -> list[int]:
+    """The session processes (children of the session starter, itself the launcher's child), oldest first."""
+    pids = [g for c in _children(server_pid) for g in _children(c)]
+    return sorted(pids, key=lambda p: Path(f"/proc/{p}").stat().st_ctime)
+
+
+def in_browser(results: Path, config: Path, sessions: int, shots: Path | None, churn: bool) -> None:
     sys.path.insert(0, str(ROOT / "tests"))
-    from test_web import _canvas_pixels, _drawn_share, _type, _wait
+    from test_web_browser import _canvas_pixels, _drawn_share, _type, _wait, chrome
 
     port = _free_port()
-    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port)]
+    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port), "--max-sessions", str(sessions + 3)]
     cmd += ["--config", str(config), "--results", str(results)]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     url = f"http://127.0.0.1:{port}/"
-    drv = None
+    drivers = []
     try:
-        _wait(lambda: urllib.request.urlopen(url, timeout=1), 60, "the server")
-        t_http = time.perf_counter() - t0
-        print(f"start: first HTTP answer {t_http:.1f} s after `spinecohort serve`; RSS {_rss_mb(proc.pid):.0f} MB")
-        opts = webdriver.ChromeOptions()
-        opts.binary_location = "/usr/bin/chromium"
-        for a in (
-            "--headless=new --no-sandbox --disable-dev-shm-usage --window-size=1600,1100 --enable-unsafe-swiftshader "
-            "--disable-background-networking --disable-component-update --disable-sync --no-first-run"
-        ).split():
-            opts.add_argument(a)
-        drv = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=opts)
+        _wait(lambda: urllib.request.urlopen(url + "status", timeout=1), 120, "the server")
+        print(f"start: first HTTP answer {time.perf_counter() - t0:.1f} s after `spinecohort serve`")
+        base = sum(_mem_mb(p)["pss"] for p in _tree(proc.pid))
+        print(f"memory with no session open (launcher, session starter, one spare session): PSS {base:.0f} MB")
+        drv = chrome(size=(1600, 1000))
+        drivers.append(drv)
         t1 = time.perf_counter()
         drv.get(url)
-        _wait(lambda: _drawn_share(_canvas_pixels(drv)) > 0.02, 60, "a drawn 3D view")
+        _wait(lambda: _drawn_share(_canvas_pixels(drv)) > 0.02, 120, "a drawn 3D view")
         print(
             f"page + 3D view drawn {time.perf_counter() - t1:.1f} s after loading it "
             f"({time.perf_counter() - t0:.1f} s after start)"
@@ -177,40 +208,105 @@ def in_browser(results: Path, config: Path, sessions: int, shot: Path | None) ->
         print(
             f"filter in the browser (select-all, delete, type a bound -> new count): median {1e3 * np.median(lat):.0f} ms"
         )
-        _type(drv, "f_PI_lo", "")
-        time.sleep(1.0)
-        e2e, server_ms, shots = [], [], []
+        e2e, server_ms = [], []
         for w in (0.5, 1.0, 1.5, 2.0, 2.5):  # one state change each, as one slider step sends it
             time.sleep(1.5)
-            t = time.perf_counter()
             before = _canvas_pixels(drv)
-            shots.append(time.perf_counter() - t)
             t = time.perf_counter()
             drv.execute_script(f"window.trame.state.set('w_0', {w})")
             _wait(lambda: (np.abs(_canvas_pixels(drv) - before).sum(axis=2) > 30).mean() > 0.001, 10, "a change")
             e2e.append(time.perf_counter() - t)
-            txt = drv.find_element("xpath", "//*[contains(text(), 'ms on the server')]").text
-            server_ms.append(float(txt.split("(")[-1].split()[0]))
+            server_ms.append(drv.execute_script("return window.trame.state.get('live_ms')"))
         print(
             f"slider: server (sample + serialise + publish) median {np.median(server_ms):.0f} ms; "
-            f"state change -> changed canvas median {1e3 * np.median(e2e):.0f} ms, measured by screenshots that "
-            f"take {1e3 * np.median(shots):.0f} ms each (the true time is up to one of them less)"
+            f"state change -> changed canvas median {1e3 * np.median(e2e):.0f} ms (polling canvas screenshots)"
         )
-        if shot:
-            drv.save_screenshot(str(shot))
-            print(f"screenshot: {shot}")
-        print(f"RSS with 1 session: {_rss_mb(proc.pid):.0f} MB")
         for _ in range(sessions - 1):
-            drv.switch_to.new_window("tab")
-            drv.get(url)
-            _wait(lambda: drv.find_elements("id", "match-count"), 60, "the page")
-        time.sleep(5)
-        print(f"RSS with {sessions} sessions: {_rss_mb(proc.pid):.0f} MB")
+            d = chrome(size=(1600, 1000))
+            drivers.append(d)
+            d.get(url)
+            _wait(lambda d=d: _drawn_share(_canvas_pixels(d)) > 0.02, 120, "a drawn 3D view")
+        time.sleep(3)
+        pids = _tree(proc.pid)
+        mem = {p: _mem_mb(p) for p in pids}
+        total = sum(m["pss"] for m in mem.values())
+        per = sorted(mem.items(), key=lambda kv: -kv[1]["pss"])
+        print(f"{sessions} sessions open: {len(pids)} processes, total PSS {total:.0f} MB")
+        for p, m in per:
+            print(f"  pid {p}: RSS {m['rss']:.0f} MB, PSS {m['pss']:.0f} MB, private {m['uss']:.0f} MB")
+        own = [mem[p] for p in _sessions(proc.pid)[:sessions]]  # the assigned ones (the newest is the spare)
+        print(
+            f"  per session process: PSS {np.mean([m['pss'] for m in own]):.0f} MB, "
+            f"private {np.mean([m['uss'] for m in own]):.0f} MB (mean of {len(own)})"
+        )
+        for d in drivers[1:]:  # five software-WebGL browsers on a small machine would slow the pictures
+            d.quit()
+        drivers[1:] = []
+        if shots:
+            screenshots(url, shots)
+        if churn:
+            churn_memory(drv, proc.pid, yaml.safe_load(config.read_text())["grid"])
     finally:
-        if drv is not None:
-            drv.quit()
+        for d in drivers:
+            d.quit()
         os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=15)
+        proc.wait(timeout=30)
+
+
+def churn_memory(drv, server_pid: int, grid: dict, n_select: int = 100, n_zip: int = 10) -> None:
+    """Memory of the first session over ``n_select`` model selections and ``n_zip`` zips of 4 decks."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from spinecohort.store.zarr_store import n_models
+    from test_web_browser import _type, _wait
+
+    pid = _sessions(server_pid)[0]
+    start = _mem_mb(pid)
+    rng = np.random.default_rng(0)
+    n = n_models(grid["n_modes"], grid["levels"])
+    t0 = time.perf_counter()
+    for k, i in enumerate(rng.integers(0, n, n_select)):
+        name = f"model_{i:05d}"
+        _type(drv, "model_input", name)
+        drv.find_element("id", "show").click()
+        _wait(lambda name=name: drv.find_element("id", "shown").text.startswith(name), 30, name)
+        if k in (0, n_select // 2, n_select - 1):
+            print(f"  after {k + 1} selections: session RSS {_mem_mb(pid)['rss']:.0f} MB")
+    print(f"{n_select} selections in {time.perf_counter() - t0:.0f} s")
+    _type(drv, "f_other", "w1 3:; w2 3:; w3 3:; w4 3:; w5 0:")
+    _wait(lambda: drv.find_element("id", "match-count").text.split()[0] == "4", 20, "4 models")
+    for k in range(n_zip):
+        t = time.perf_counter()
+        drv.execute_script(
+            "window.__zip = null; window.trame.trigger('download_zip', []).then((b) => window.__zip = b)"
+        )
+        _wait(lambda: drv.execute_script("return window.__zip !== null"), 300, "the zip")
+        print(f"  zip {k + 1} (4 decks): {time.perf_counter() - t:.1f} s, session RSS {_mem_mb(pid)['rss']:.0f} MB")
+    end = _mem_mb(pid)
+    print(f"session memory over {n_select} selections + {n_zip} zips: RSS {start['rss']:.0f} -> {end['rss']:.0f} MB")
+
+
+def screenshots(url: str, out: Path) -> None:
+    """The page at 1366 x 768 and 1920 x 1080: a patient's numbers found, a filter, a model on screen."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_web_browser import _show, _type, _wait, chrome, open_page
+
+    out.mkdir(parents=True, exist_ok=True)
+    for w, h in ((1366, 768), (1920, 1080)):
+        d = chrome(size=(w, h))
+        try:
+            open_page(d, url)
+            _type(d, "pat_PI", "60")
+            _type(d, "pat_PT", "25")
+            d.find_element("id", "find").click()
+            _wait(lambda d=d: "d = " in d.find_element("id", "nearest").text, 60, "nearest")
+            _type(d, "f_PI_lo", "55")
+            _type(d, "f_LL_hi", "50")
+            _show(d, "model_08403")
+            time.sleep(4)
+            d.save_screenshot(str(out / f"platform-{w}.png"))
+            print(f"screenshot: {out / f'platform-{w}.png'}")
+        finally:
+            d.quit()
 
 
 def main() -> None:
@@ -219,7 +315,8 @@ def main() -> None:
     ap.add_argument("--results", type=Path)
     ap.add_argument("--config", type=Path)
     ap.add_argument("--sessions", type=int, default=5)
-    ap.add_argument("--screenshot", type=Path)
+    ap.add_argument("--screenshots", type=Path, help="folder for platform-1366.png and platform-1920.png")
+    ap.add_argument("--churn", action="store_true", help="memory over 100 selections and 10 zips")
     ap.add_argument("--no-browser", action="store_true")
     a = ap.parse_args()
     if a.results:
@@ -230,7 +327,7 @@ def main() -> None:
         print(f"stand-in results in {a.work} ({time.perf_counter() - t0:.0f} s)")
     in_process(results, config)
     if not a.no_browser and Path("/usr/bin/chromium").exists():
-        in_browser(results, config, a.sessions, a.screenshot)
+        in_browser(results, config, a.sessions, a.screenshots, a.churn)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""The cohort platform (spinecohort.web): server-side logic as unit tests, then the page in a real headless
-Chromium on the test configuration's results (the session's ``test_run``)."""
+"""The cohort platform (spinecohort.web): server-side logic as unit tests, the data layer on the test
+configuration's results (the session's ``test_run``), and the launcher's refusals over HTTP.  The page in
+a real headless Chromium is ``test_web_browser.py``."""
 
 import io
 import os
@@ -9,6 +10,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 import zipfile
 from pathlib import Path
@@ -18,7 +20,6 @@ import pandas as pd
 import pytest
 
 import spinecohort
-from spinecohort.web.app import histogram_svg, parse_more_ranges
 from spinecohort.web.data import (
     PlatformError,
     bounded_zip,
@@ -27,8 +28,8 @@ from spinecohort.web.data import (
     nearest_models,
     open_data,
 )
+from spinecohort.web.logic import histogram_svg, parse_more_ranges
 
-CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 REPO = Path(spinecohort.__file__).resolve().parents[2]
 
 
@@ -105,8 +106,8 @@ def test_histogram_counts_share_edges_and_count_the_selection():
     h = histogram_counts(v, np.array([True, False, True, False, True]), bins=3)
     assert h["edges"].tolist() == [0.0, 1.0, 2.0, 3.0]
     assert h["all"].tolist() == [1, 1, 2] and h["selected"].tolist() == [1, 0, 1]  # NaN counts nowhere
-    svg = histogram_svg({"PI": h}, {"PI": "deg"})
-    assert svg.startswith("<svg") and "PI [deg]" in svg and svg.count("<rect") == 3 + 2
+    svg = histogram_svg({"PI": h}, {"PI": "Pelvic incidence (deg)"})
+    assert svg.startswith("<svg") and "Pelvic incidence (deg)" in svg and svg.count("<rect") == 3 + 2
 
 
 # ------------------------------------------------------------------------------- on the test results
@@ -190,9 +191,9 @@ def test_table_pages_sort_server_side(data):
 
     page = Platform(data)
     page.state.sort_by = [{"key": "PI", "order": "desc"}]
-    page.state.per_page = 5
+    page.state.per_page = 10
     page.update_rows()
-    expect = data.table.sort_values("PI", ascending=False)["model_id"].head(5).tolist()
+    expect = data.table.sort_values("PI", ascending=False)["model_id"].head(10).tolist()
     assert [r["model_id"] for r in page.state.rows] == expect
     page.state.f_other = "PT 20:"  # a filtered table
     page.apply_filter()
@@ -205,7 +206,7 @@ def test_table_pages_sort_server_side(data):
         assert why in page.state.message and page.state.n_match == n
     page.state.f_other, page.state.f_PI_lo, page.state.f_PI_hi = "", "60", "50"
     page.apply_filter()
-    assert "PI: min 60 exceeds max 50" in page.state.message
+    assert "Pelvic incidence: min 60 exceeds max 50" in page.state.message
     page.state.f_PI_lo = page.state.f_PI_hi = ""
     page.apply_filter()
     assert page.state.message == "" and page.state.n_match == len(data.table)
@@ -213,7 +214,8 @@ def test_table_pages_sort_server_side(data):
 
 def test_serve_warns_when_listening_beyond_this_machine(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "spinecohort.cli", "serve", "--host", "0.0.0.0", "--results", str(tmp_path / "none")]
+        [sys.executable, "-m", "spinecohort.cli", "serve", "--host", "0.0.0.0", "--port", str(_free_port())]
+        + ["--results", str(tmp_path / "none")]
         + ["--config", str(REPO / "config" / "config.yaml")],
         capture_output=True,
         text=True,
@@ -241,232 +243,223 @@ def test_a_release_bag_serves_in_place_and_says_what_is_missing(test_run, tmp_pa
     assert {p: p.stat().st_mtime_ns for p in bag.rglob("*")} == before  # nothing written into the bag
 
 
-# ------------------------------------------------------------------------------------- the browser
+# ------------------------------------------------------------------------------ labels and state checks
+def test_labels_spell_out_names_units_and_gap_categories(data):
+    from spinecohort.web.labels import empty_columns, explain, gap_words, label, label_with_unit
+
+    assert label_with_unit("PI") == "Pelvic incidence (deg)" and label_with_unit("SVA_T1").endswith("(mm)")
+    assert label("TK_T4T12") == "Thoracic kyphosis T4–T12" and label("DH_L4-L5") == "Disc height L4–L5"
+    assert label("w2") == "Shape mode 2" and "standard deviations" in explain("w2")
+    assert [gap_words(c) for c in ("P", "MD", "SD", None)] == [
+        "proportioned",
+        "moderately disproportioned",
+        "severely disproportioned",
+        "",
+    ]
+    t = pd.DataFrame({"a": [np.nan, np.nan], "b": [1.0, np.nan], "c": ["", ""], "d": ["x", ""]})
+    assert empty_columns(t, ["a", "b", "c", "d"]) == ["a", "c"]
+    # the test grid's virtual models have no measured GAP (no age): the column is not on the page
+    gap_known = np.isfinite(data.table["GAP"].to_numpy(float)).any() if "GAP" in data.table else False
+    from spinecohort.web.app import Platform
+
+    page = Platform(data)
+    assert ("GAP" in page.columns) == gap_known
+    assert all(h["title"] and h["hover"] for h in page.state.headers if h["key"] not in ("model_id", "kind"))
+
+
+@pytest.fixture(scope="module")
+def page(data):
+    from spinecohort.web.app import Platform
+
+    return Platform(data)
+
+
+@pytest.mark.parametrize(
+    "changes, why",
+    [
+        ({"f_gap": ["<script>"]}, "f_gap: '<script>' is not one of"),
+        ({"w_0": 99.0}, "w_0: 99.0 is outside -3 ... 3"),
+        ({"w_0": True}, "expected a number, got bool"),
+        ({"w_0": float("nan")}, "outside"),
+        ({"per_page": -1}, "per_page: '-1' is not one of 10, 15, 25, 50, 100"),
+        ({"sort_by": [{"key": "__class__", "order": "asc"}]}, "is not a column"),
+        ({"f_PI_lo": "9" * 40}, "longer than 32"),
+        ({"f_kind": ["virtual"]}, "is not one of"),
+        ({"message": "you were hacked"}, "only '' may be set"),
+        ({"n_match": 0}, "'n_match' is not a value the page sets"),
+        ({"title": "x"}, "'title' is not a value the page sets"),
+    ],
+)
+def test_state_checks_refuse_what_no_widget_sends(page, changes, why):
+    from spinecohort.web.guard import refusal, state_rules
+
+    got = refusal(state_rules(page), changes)
+    assert got is not None and why in got, got
+
+
+def test_state_checks_pass_what_the_widgets_send(page):
+    from spinecohort.web.guard import refusal, state_rules
+
+    ok = {
+        "f_PI_lo": "45.5",
+        "f_PI_hi": "",
+        "f_gap": [page.state.gap_choices[0]["value"]],
+        "f_kind": "virtual",
+        "w_0": -3.0,
+        "w_1": 1.25,
+        "per_page": 50,
+        "page": 2,
+        "sort_by": [{"key": "PI", "order": "desc"}],
+        "model_input": "model_00005",
+        "pat_PI": "55",
+        "message": "",
+        "f_other": "TK_T1T12 30:50",
+    }
+    assert refusal(state_rules(page), ok) is None
+
+
+def test_origin_must_be_the_served_host():
+    from spinecohort.web.launcher import host_of, origin_refusal
+
+    allowed = {"127.0.0.1", "localhost", "::1"}
+    assert host_of("127.0.0.1:8080") == "127.0.0.1" and host_of("[::1]:8080") == "::1"
+    assert origin_refusal("http://127.0.0.1:8080", "127.0.0.1:8080", allowed) is None
+    assert origin_refusal("https://localhost:8080", "localhost:8080", allowed) is None
+    for origin, host, why in (
+        ("http://evil.example.com", "127.0.0.1:8080", "is not this server"),
+        ("http://127.0.0.1:9999", "127.0.0.1:8080", "is not this server"),  # another port: another origin
+        (None, "127.0.0.1:8080", "no Origin"),
+        ("http://evil.example.com:8080", "evil.example.com:8080", "Host"),  # a foreign name pointed here
+    ):
+        assert why in origin_refusal(origin, host, allowed)
+
+
+def test_xlsx_of_the_table_reads_back_equal(data):
+    from spinecohort.web.logic import xlsx_bytes
+
+    t = data.table
+    back = pd.read_excel(io.BytesIO(xlsx_bytes(t)), sheet_name="selection")
+    assert list(back.columns) == list(t.columns) and len(back) == len(t)
+    np.testing.assert_allclose(back["PI"].to_numpy(float), np.round(t["PI"].to_numpy(float), 4), rtol=0, atol=1e-12)
+    assert back["model_id"].tolist() == t["model_id"].tolist()
+    assert back["repaired"].astype(bool).tolist() == t["repaired"].astype(bool).tolist()
+
+
+def test_a_live_shape_deck_is_the_checked_shape_of_its_weights(data, tmp_path):
+    from spinecohort.fe.abaqus import read_inp_nodes
+    from spinecohort.personalize import personalized_hex
+
+    w = np.array([1.5, -0.5, 0.0])
+    path = tmp_path / "live.inp"
+    path.write_bytes(data.weights_deck(w))
+    _, xyz = read_inp_nodes(path)
+    pts, _ = personalized_hex(data.template, data.hex_ssm, w, 0.0)
+    assert np.abs(xyz[: len(pts)] - pts).max() < 1e-5  # printed with 6 decimals
+    with pytest.raises(PlatformError, match="within \\+-3 SD"):
+        data.weights_deck([4.0, 0.0, 0.0])
+
+
+# ------------------------------------------------------------------------------ the launcher over HTTP
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
-@pytest.fixture(scope="module")
-def server(test_run, tmp_path_factory):
-    if not (Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists()):
-        pytest.skip("Chromium and chromedriver are not installed (scripts/install_system_deps.sh installs them)")
-    port = _free_port()
-    log = tmp_path_factory.mktemp("serve") / "serve.log"
-    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port), "--max-zip", "5"]
-    cmd += ["--config", str(test_run / "config" / "config.yaml"), "--results", str(test_run / "results")]
+def wait_for_server(url, proc, log, timeout_s=60.0) -> float:
+    """Seconds until ``url`` answers; fails with the server's log if it stops or stays silent."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
-    url = f"http://127.0.0.1:{port}/"
-    try:
-        for _ in range(120):
-            try:
-                urllib.request.urlopen(url, timeout=1)
-                break
-            except OSError:
-                assert proc.poll() is None, log.read_text()
-                time.sleep(0.25)
-        else:
-            raise AssertionError(f"the server did not answer in 30 s:\n{log.read_text()}")
-        print(f"server answered after {time.perf_counter() - t0:.1f} s")
-        yield {"url": url, "proc": proc, "log": log}
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(timeout=10)
-
-
-@pytest.fixture(scope="module")
-def browser(server, tmp_path_factory):
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    downloads = tmp_path_factory.mktemp("downloads")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = CHROMIUM
-    for a in (
-        "--headless=new",
-        "--no-sandbox",
-        "--disable-dev-shm-usage",
-        "--window-size=1600,1100",
-        "--enable-unsafe-swiftshader",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--no-first-run",
-    ):
-        opts.add_argument(a)
-    opts.add_experimental_option(
-        "prefs",
-        {
-            "download.default_directory": str(downloads),
-            "download.prompt_for_download": False,
-            "profile.default_content_setting_values.automatic_downloads": 1,
-        },
-    )
-    drv = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
-    try:
-        drv.get(server["url"])
-        _wait(lambda: drv.find_elements("id", "match-count"), 30, "the page")
-        drv.downloads = downloads
-        yield drv
-    finally:
-        drv.quit()
-
-
-def _wait(cond, timeout=20.0, what="condition"):
-    t0 = time.time()
-    while time.time() - t0 < timeout:
+    while time.perf_counter() - t0 < timeout_s:
         try:
-            v = cond()
-        except Exception:  # the page is updating under us: try again
-            v = None
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+            urllib.request.urlopen(url, timeout=1)
+            return time.perf_counter() - t0
+        except OSError:
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.25)
+    raise AssertionError(f"the server did not answer in {timeout_s:g} s:\n{log.read_text()}")
 
 
-def _type(drv, element_id, text):
-    from selenium.webdriver.common.keys import Keys
-
-    el = drv.find_element("id", element_id)
-    el.send_keys(Keys.CONTROL, "a")
-    el.send_keys(Keys.DELETE)
-    el.send_keys(text)
-    return el
+def _serve(test_run, port, *extra):
+    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port), *extra]
+    cmd += ["--config", str(test_run / "config" / "config.yaml"), "--results", str(test_run / "results")]
+    return cmd
 
 
-def _canvas_pixels(drv) -> np.ndarray:
-    """The 3D canvas as an (H, W, 3) int array (an element screenshot: the page region of the canvas)."""
-    from PIL import Image
-
-    png = drv.find_element("css selector", "#view-box canvas").screenshot_as_png
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)[2:-2, 2:-2]
-
-
-def _drawn_share(px: np.ndarray) -> float:
-    """Share of pixels differing (sum |dRGB| > 30) from the background, the commonest border colour."""
-    border = np.concatenate([px[0], px[-1], px[:, 0], px[:, -1]])
-    colours, counts = np.unique(border, axis=0, return_counts=True)
-    bg = colours[np.argmax(counts)]
-    return float((np.abs(px - bg).sum(axis=2) > 30).mean())
-
-
-def test_browser_filter_select_slide_download(browser, server, test_run, tmp_path_factory):
-    from selenium.webdriver.common.keys import Keys
-
-    from spinecohort.fe.abaqus import read_inp_nodes
-    from spinecohort.store.zarr_store import read_model
-
-    drv = browser
-    table = pd.concat(
-        [
-            pd.read_csv(test_run / "results" / "virtual_cohort.csv"),
-            pd.read_csv(test_run / "results" / "personalized" / "personalization.csv")
-            .query("method == 'fit'")
-            .rename(columns={"PI_achieved": "PI", "ID": "model_id", "b1": "w1", "b2": "w2"}),
-        ]
+def test_a_port_in_use_is_one_line(test_run):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        proc = subprocess.run(_serve(test_run, port), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == (
+        f"spinecohort: error: port {port} on 127.0.0.1 is already in use (another spinecohort serve?); "
+        "choose one with --port"
     )
-    n_all = len(table)
-    assert drv.find_element("id", "match-count").text.startswith(f"{n_all} of {n_all} models match")
-    # 1. a range filter: the count equals pandas' on the same tables (virtual + personalized rows)
-    lo = float(np.median(table["PI"]))
-    expect = int((table["PI"] >= lo).sum())
-    assert 0 < expect < n_all
-    _type(drv, "f_PI_lo", f"{lo:.6f}")
-    _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{expect} of {n_all}"), 10, "the count")
-    _type(drv, "f_PI_lo", "")
-    _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{n_all} of"), 10, "the reset count")
-    drv.find_elements("css selector", "#table .model-link")[1].click()  # a click in the table shows that model
-    _wait(lambda: drv.find_element("id", "param-PI").text != "", 15, "the clicked model")
-    assert "model_00001" in drv.find_element("id", "shown").text
-
-    # 2. select a model: its PI from the table in the parameter panel, a drawn (non-blank) 3D view
-    model = "model_00005"
-    pi = float(pd.read_csv(test_run / "results" / "virtual_cohort.csv").set_index("model_id").loc[model, "PI"])
-    _type(drv, "model_input", model)
-    drv.find_element("id", "show").click()
-    _wait(lambda: drv.find_element("id", "param-PI").text == f"{round(pi, 2):g}", 15, "the parameter panel")
-    share = _wait(lambda: (s := _drawn_share(_canvas_pixels(drv))) > 0.02 and s, 20, "a drawn canvas")
-    assert 0.02 < share < 0.95, share
-    time.sleep(1.0)  # let vtk.js settle the frame before the reference picture
-    before = _canvas_pixels(drv)
-
-    # 3. move mode 1's slider (keyboard: 30 steps of 0.05 SD = +1.5 SD): the picture changes
-    thumb = drv.find_elements("css selector", "#view-box ~ .v-row .v-slider-thumb")[0]
-    thumb.click()
-    for _ in range(30):
-        thumb.send_keys(Keys.ARROW_RIGHT)
-    _wait(lambda: "live: hex SSM" in drv.find_element("id", "shown").text, 10, "the live shape")
-    changed = _wait(
-        lambda: (d := (np.abs(_canvas_pixels(drv) - before).sum(axis=2) > 30).mean()) > 0.002 and d, 15, "a change"
-    )
-    print(f"slider moved: {100 * changed:.1f} % of the canvas pixels changed")
-    shot = tmp_path_factory.mktemp("artefacts") / "platform.png"
-    drv.save_screenshot(str(shot))
-    print(f"screenshot: {shot}")
-
-    # 4. download the selected model's deck: its nodes are the store's coordinates
-    _type(drv, "model_input", model)
-    drv.find_element("id", "show").click()
-    _wait(lambda: "live" not in drv.find_element("id", "shown").text, 10, "the stored model")
-    drv.find_element("id", "dl-inp").click()
-    deck = _wait(lambda: (p := drv.downloads / f"{model}.inp").is_file() and p.stat().st_size > 0 and p, 30, "the deck")
-    time.sleep(0.5)
-    ids, xyz = read_inp_nodes(deck)
-    _, stored = read_model(test_run / "results" / "cohort.zarr", 5)
-    # the template's nodes first (the facet-joint gap nodes follow them)
-    n = len(stored)
-    assert ids[:n].tolist() == list(range(1, n + 1)) and len(ids) > n
-    xyz = xyz[:n]
-    # the store rounds to 2^-10 mm (float32-q10, error <= 0.49 um); the deck prints 6 decimals
-    assert np.abs(xyz - stored).max() < 1e-3
-
-    # 5. the mean as a translucent overlay; a bounded zip of the filtered decks and the filtered table as CSV
-    drv.find_element("xpath", "//button[normalize-space()='mean']").click()
-    _wait(lambda: "overlay: the mean model" in drv.find_element("id", "shown").text, 10, "the overlay")
-    _type(drv, "f_other", "w1 3:; w2 3:")
-    sel = table[(table["w1"] >= 3) & (table["w2"] >= 3)]["model_id"].tolist()
-    assert 0 < len(sel) <= 5  # the server's --max-zip
-    _wait(lambda: drv.find_element("id", "match-count").text.startswith(f"{len(sel)} of"), 10, "the zip selection")
-    drv.find_element("id", "dl-zip").click()
-    zpath = _wait(lambda: (p := drv.downloads / "spinecohort_decks.zip").is_file() and p, 60, "the zip")
-    time.sleep(0.5)
-    with zipfile.ZipFile(zpath) as z:
-        assert sorted(z.namelist()) == sorted(f"{m}.inp" for m in sel)
-    drv.find_element("id", "dl-csv").click()
-    cpath = _wait(lambda: (p := drv.downloads / "virtual_cohort_selection.csv").is_file() and p, 30, "the CSV")
-    time.sleep(0.5)
-    assert sorted(pd.read_csv(cpath)["model_id"]) == sorted(sel)
-    _type(drv, "f_other", "")
-
-    # 6. bad input: a message in the page, and the server keeps serving
-    _type(drv, "model_input", "../../etc/passwd")
-    drv.find_element("id", "show").click()
-    _wait(lambda: "not a model ID" in drv.find_element("id", "message").text, 10, "the bad-ID message")
-    _type(drv, "model_input", "model_99999")
-    drv.find_element("id", "show").click()
-    _wait(lambda: "outside the grid of 27 models" in drv.find_element("id", "message").text, 10, "the range message")
-    for k, val in (("pat_PI", "60"), ("pat_PT", "20"), ("pat_SS", "30")):
-        _type(drv, k, val)
-    drv.find_element("id", "find").click()
-    _wait(lambda: "must equal PT + SS" in drv.find_element("id", "message").text, 10, "the PI = PT + SS message")
-    _type(drv, "pat_PI", "")
-    drv.find_element("id", "find").click()
-    _wait(lambda: "continuous model: weights" in drv.find_element("id", "fit-text").text, 60, "the fitted model")
-    nearest = _wait(lambda: drv.find_elements("xpath", "//td[starts-with(normalize-space(), 'd = ')]"), 10, "nearest")
-    assert len(nearest) == 5
-    drv.find_element("id", "dl-fit").click()  # one click from the numbers to a deck
-    fit = _wait(lambda: (p := drv.downloads / "personalized.inp").is_file() and p.stat().st_size > 0 and p, 60, "deck")
-    time.sleep(0.5)
-    assert read_inp_nodes(fit)[0][: len(stored)].tolist() == list(range(1, len(stored) + 1))
-    assert server["proc"].poll() is None
 
 
-def test_server_stops_cleanly(server):
-    proc = server["proc"]
-    assert proc.poll() is None
-    os.killpg(proc.pid, signal.SIGINT)
-    assert proc.wait(timeout=15) in (0, -signal.SIGINT)
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *a, **k):
+        return None
+
+
+def _get(url, headers=None):
+    """(status, location, body) of a GET without following redirects."""
+    opener = urllib.request.build_opener(_NoRedirect)
+    try:
+        with opener.open(urllib.request.Request(url, headers=headers or {}), timeout=30) as r:
+            return r.status, r.headers.get("Location"), r.read().decode(errors="replace")
+    except urllib.error.HTTPError as e:
+        return e.code, e.headers.get("Location"), e.read().decode(errors="replace")
+
+
+def _ws_status(url, origin) -> int:
+    """HTTP status of a websocket handshake to ``url`` sent with ``origin`` (101 = accepted)."""
+    import asyncio
+
+    import aiohttp
+
+    async def go():
+        headers = {"Origin": origin} if origin else {}
+        async with aiohttp.ClientSession() as s:
+            try:
+                async with s.ws_connect(url, headers=headers) as ws:
+                    await ws.close()
+                    return 101
+            except aiohttp.WSServerHandshakeError as e:
+                return e.status
+
+    return asyncio.run(go())
+
+
+def test_sessions_are_bounded_end_when_idle_and_refuse_other_origins(test_run, tmp_path):
+    port = _free_port()
+    log = tmp_path / "serve.log"
+    # one session at most, ending 3 s after its last action
+    cmd = _serve(test_run, port, "--max-sessions", "1", "--idle-timeout", "0.05")
+    proc = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_for_server(base + "/status", proc, log)
+        status, loc, _ = _get(base + "/")
+        assert status == 302 and loc.startswith("/s/"), (status, loc)
+        sid = loc.split("/")[2]
+        ws = f"ws://127.0.0.1:{port}/s/{sid}/ws"
+        assert _ws_status(ws, "http://evil.example.com") == 403
+        assert _ws_status(ws, f"http://127.0.0.1:{port + 1}") == 403  # another port is another origin
+        assert _ws_status(ws, f"http://127.0.0.1:{port}") == 101  # the page's own origin
+        assert _get(base + f"/s/{sid}/ws")[0] == 400  # a plain GET of the websocket's address
+        assert _get(base + "/", {"Host": f"evil.example.com:{port}"})[0] == 403  # a foreign name for this host
+        status, _, body = _get(base + "/")  # the one session is in use
+        assert status == 503 and "All 1 sessions" in body
+        t0 = time.time()
+        while time.time() - t0 < 15 and '"sessions": 0' not in _get(base + "/status")[2]:
+            time.sleep(0.5)
+        assert '"sessions": 0' in _get(base + "/status")[2]  # it ended after 3 s without an action
+        assert _get(base + "/")[0] == 302  # and its place is free again
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(timeout=20)
+    text = log.read_text()
+    assert "refused a websocket to session" in text and "Origin 'http://evil.example.com'" in text
+    assert "idle for 3 s" in text and "Traceback" not in text, text

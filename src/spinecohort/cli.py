@@ -285,8 +285,8 @@ def _personalize(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace) -> int:
     import time
 
-    from spinecohort.web.app import serve
     from spinecohort.web.data import open_data
+    from spinecohort.web.launcher import Settings, bind, serve
 
     t0 = time.perf_counter()
     if args.host not in ("127.0.0.1", "localhost", "::1"):
@@ -296,15 +296,33 @@ def _serve(args: argparse.Namespace) -> int:
             "no encryption). Use it only on a trusted network, or keep the default 127.0.0.1 and tunnel (ssh -L).",
             file=sys.stderr,
         )
+    if args.max_sessions < 1 or args.idle_timeout <= 0 or args.max_zip < 1:
+        raise ValueError("--max-sessions, --idle-timeout and --max-zip must be positive")
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s spinecohort serve: %(message)s", "%H:%M:%S"))
+    for name in ("spinecohort.serve", "spinecohort.web"):
+        logging.getLogger(name).addHandler(handler)
+        logging.getLogger(name).setLevel(logging.INFO)
+        logging.getLogger(name).propagate = False
+    sock = bind(args.host, args.port)  # a port in use is refused before the data are read
     data = open_data(results=args.results, release=args.release, config=args.config)
     for m in data.missing:
         print(f"spinecohort serve: not available: {m}", file=sys.stderr)
+    settings = Settings(
+        host=args.host,
+        port=args.port,
+        max_sessions=args.max_sessions,
+        idle_timeout_s=60.0 * args.idle_timeout,
+        max_zip=args.max_zip,
+        public_hosts=tuple(args.public_host or ()),
+    )
     print(
         f"serving {len(data.table):,} models from {data.src.origin} on http://{args.host}:{args.port}/ "
-        f"(data loaded in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)",
+        f"to at most {args.max_sessions} browser sessions, each ending {args.idle_timeout:g} min after its last "
+        f"action (data loaded in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)",
         flush=True,
     )
-    serve(data, host=args.host, port=args.port, max_zip=args.max_zip)
+    serve(data, settings, sock)
     return 0
 
 
@@ -408,6 +426,20 @@ def main(argv: list[str] | None = None) -> int:
     sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
     sv.add_argument("--port", type=int, default=8080)
     sv.add_argument("--max-zip", type=int, default=25, help="most decks in one zip download (default 25)")
+    sv.add_argument(
+        "--max-sessions", type=int, default=8, help="most browser sessions at once (default 8; each is a process)"
+    )
+    sv.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=30.0,
+        help="minutes without an action after which a session ends (default 30)",
+    )
+    sv.add_argument(
+        "--public-host",
+        action="append",
+        help="a host name users type to reach this server (repeatable; loopback names are always accepted)",
+    )
     sv.set_defaults(func=_serve)
 
     args, extra = parser.parse_known_args(argv)

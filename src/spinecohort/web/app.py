@@ -1,34 +1,34 @@
-"""The trame page of ``spinecohort serve`` and its controllers.
+"""The state and the controllers of one browser session of ``spinecohort serve``.
 
-One server process holds one :class:`~spinecohort.web.data.CohortData` (read-only) and one shared page
-state: every browser tab connected to it sees the same filters and the same model (trame's model; run one
-process per independent user).  Requests the data layer refuses (``PlatformError``) become a message in
-the page; the server keeps serving.
+One :class:`Platform` is one user's page: its filters, its selection, its sliders, its search and its
+downloads.  ``launcher`` runs one such page per browser session in its own process, forked from a parent
+that holds the data (:class:`~spinecohort.web.data.CohortData`, read-only), so sessions never see each
+other's state.  Requests the data layer refuses (``PlatformError``) become a message in the page, the
+next successful action clears it, and the server keeps serving.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import math
-import sys
 import time
 
 import numpy as np
 import pandas as pd
 
-from spinecohort.web.data import MAX_ZIP_MODELS, CohortData, PlatformError, describe, filter_mask, parse_bound
+from spinecohort.web.data import MAX_ZIP_MODELS, CohortData, PlatformError, describe
+from spinecohort.web.labels import explain, gap_words, label, label_with_unit
+from spinecohort.web.logic import filter_mask, histogram_counts, histogram_svg, parse_bound, parse_more_ranges
 from spinecohort.web.scene import Scene
 
 log = logging.getLogger(__name__)
 
 #: range filters with their own min / max fields (any numeric column can be filtered in "more ranges")
 MAIN_RANGES = ("PI", "PT", "SS", "LL", "PI_minus_LL", "GT", "TPA", "TK_T4T12", "Cobb", "SVA_T1")
-#: columns of the table (the rest is in the downloads)
+#: columns of the table, in this order when present and not empty (the rest is in the downloads)
 TABLE_COLUMNS = (
     "model_id",
     "kind",
-    "w*",
     "PI",
     "PT",
     "SS",
@@ -42,6 +42,7 @@ TABLE_COLUMNS = (
     "DH_L4-L5",
     "GAP",
     "GAP_category",
+    "weights",
     "repaired",
     "distracted",
 )
@@ -60,64 +61,17 @@ PANEL = (
 )
 MAX_SLIDERS = 5
 FLAG_CHOICES = ["any", "yes", "no"]
-
-
-def histogram_svg(hists: dict[str, dict], units: dict[str, str], width: int = 120, height: int = 60) -> str:
-    """Small-multiple histograms as one inline SVG: per parameter the whole cohort (grey) and the current
-    selection (blue) on the same count axis, so the selection shows as the part of the cohort it is."""
-    cols = 3
-    rows = math.ceil(len(hists) / cols) or 1
-    cell_w, cell_h = width + 10, height + 30
-    out = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{cols * cell_w}" height="{rows * cell_h}" '
-        'font-family="sans-serif" font-size="10">'
-    ]
-    for k, (name, h) in enumerate(hists.items()):
-        x0, y0 = (k % cols) * cell_w + 5, (k // cols) * cell_h + 12
-        top = max(int(h["all"].max()), 1)
-        n = len(h["all"])
-        bw = width / n
-        unit = units.get(name, "")
-        out.append(f'<text x="{x0}" y="{y0 - 2}">{name}{f" [{unit}]" if unit else ""}</text>')
-        for i, (a, s) in enumerate(zip(h["all"], h["selected"])):
-            ha, hs = height * a / top, height * s / top
-            x = x0 + i * bw
-            out.append(
-                f'<rect x="{x:.1f}" y="{y0 + height - ha:.1f}" width="{bw:.1f}" height="{ha:.1f}" fill="#d0d0d0"/>'
-            )
-            if s:
-                out.append(
-                    f'<rect x="{x:.1f}" y="{y0 + height - hs:.1f}" width="{bw:.1f}" height="{hs:.1f}" fill="#2b6cb0"/>'
-                )
-        lo, hi = h["edges"][0], h["edges"][-1]
-        out.append(f'<text x="{x0}" y="{y0 + height + 11}">{lo:.3g}</text>')
-        out.append(f'<text x="{x0 + width}" y="{y0 + height + 11}" text-anchor="end">{hi:.3g}</text>')
-    out.append("</svg>")
-    return "".join(out)
-
-
-def parse_more_ranges(text: str) -> dict[str, tuple[float | None, float | None]]:
-    """``"TK_T1T12 30:50; DH_L4-L5 8:"`` -> {column: (lo, hi)} with ``measure.tables.parse_range`` (the
-    grammar of ``spinecohort query``)."""
-    from spinecohort.measure.tables import parse_range
-
-    out = {}
-    for part in str(text or "").replace(",", ";").split(";"):
-        part = part.strip()
-        if not part:
-            continue
-        name, _, rng = part.partition(" ")
-        try:
-            out[name] = parse_range(rng.strip(), name)
-        except ValueError as exc:
-            raise PlatformError(str(exc)) from None
-    return out
+#: rows per table page; no "all": 16,807 rows of 20 columns are too many for the browser to draw at once
+PAGE_SIZES = (10, 15, 25, 50, 100)
+DEFAULT_PAGE_SIZE = 15
+#: model download formats by what is on screen: a grid model, a patient's deck, a live or fitted shape
+FORMATS_OF = {"grid": ["inp", "stl", "vtu"], "patient": ["inp"], "live": ["inp"], "fit": ["inp"], "": []}
 
 
 def _cell(v):
-    """A table value for the page: rounded floats, None for NaN, plain Python types."""
+    """A table value for the page: rounded floats, None for NaN, yes/no for flags, plain Python types."""
     if isinstance(v, (bool, np.bool_)):
-        return bool(v)
+        return "yes" if v else "no"
     if isinstance(v, (float, np.floating)):
         return None if not np.isfinite(v) else round(float(v), 2)
     if isinstance(v, (np.integer,)):
@@ -125,47 +79,72 @@ def _cell(v):
     return v if v is None or isinstance(v, (int, str)) else str(v)
 
 
-class Platform:
-    """State, controllers and layout of the page over one CohortData."""
+def table_rows(sub: pd.DataFrame, columns: list[str], weights: list[str]) -> list[dict]:
+    """Rows of the page's table: rounded values, GAP categories in words, the mode weights in one column."""
+    out = []
+    w = np.round(sub[weights].to_numpy(float), 2) if weights else np.zeros((len(sub), 0))
+    plain = [c for c in columns if c != "weights"]
+    for k, r in enumerate(sub[plain].itertuples(index=False, name=None)):
+        row = {c: _cell(v) for c, v in zip(plain, r)}
+        if "GAP_category" in row:
+            row["GAP_category"] = gap_words(row["GAP_category"])
+        if "weights" in columns:
+            row["weights"] = " ".join(f"{x:+.2f}" if np.isfinite(x) else "–" for x in w[k]) if len(w[k]) else ""
+        out.append(row)
+    return out
 
-    def __init__(self, data: CohortData, server=None, max_zip: int = MAX_ZIP_MODELS):
+
+class Platform:
+    """State, controllers and layout of one user's page over one CohortData."""
+
+    def __init__(self, data: CohortData, server=None, max_zip: int = MAX_ZIP_MODELS, topology: dict | None = None):
         from trame.app import get_server
+
+        from spinecohort.web.labels import empty_columns
 
         self.data = data
         self.max_zip = int(max_zip)
         self.server = server or get_server(client_type="vue3")
         self.state, self.ctrl = self.server.state, self.server.controller
         t = data.table
-        self.ranges = [c for c in (*MAIN_RANGES, *data.weights) if c in t.columns]
-        self.columns = [c for p in TABLE_COLUMNS for c in (data.weights if p == "w*" else [p]) if c in t.columns]
-        self.hist_params = [c for c in HISTOGRAMS if c in t.columns]
+        empty = set(empty_columns(t, [c for c in t.columns if c != "model_id"]))
+        self.ranges = [c for c in (*MAIN_RANGES, *data.weights) if c in t.columns and c not in empty]
+        self.columns = [
+            c for c in TABLE_COLUMNS if (c in t.columns and c not in empty) or (c == "weights" and data.weights)
+        ]
+        self.hist_params = [c for c in HISTOGRAMS if c in t.columns and c not in empty]
+        self.panel = [c for c in PANEL if c in t.columns and c not in empty]
         self.n_sliders = min(MAX_SLIDERS, data.hex_ssm.fields.shape[0])
         self.mask = np.ones(len(t), bool)
-        self.order = np.arange(len(t))
-        self.selected: str | None = None
-        self.selected_weights = np.zeros(self.n_sliders)
-        mean = data.hex_ssm.mean
-        self.scene = Scene(data.template, mean)
+        self.shown_weights = np.zeros(self.n_sliders)
+        self._fit = self._fit_targets = None
+        self._filter_error = False
+        self.scene = Scene(data.template, data.hex_ssm.mean, topology=topology)
         self._init_state()
-        self._build_ui()
+        from spinecohort.web.page import build_page
+
+        self.layout = build_page(self)
         self._register()
         self.apply_filter()
 
     # --------------------------------------------------------------------------- state
     def _init_state(self) -> None:
         s, d = self.state, self.data
-        units = d.units()
+        gap = (
+            sorted(d.table["GAP_category"].dropna().astype(str).unique().tolist(), key=lambda c: "P MD SD".find(c))
+            if "GAP_category" in self.columns
+            else []
+        )
         s.update(
             {
+                "trame__title": "spinecohort platform",
                 "title": describe(d),
                 "missing": d.missing,
                 "message": "",
                 "message_kind": "error",
                 "f_other": "",
                 "f_gap": [],
-                "gap_choices": sorted(d.table["GAP_category"].dropna().astype(str).unique().tolist())
-                if "GAP_category" in d.table.columns
-                else [],
+                "gap_choices": [{"title": gap_words(c), "value": c} for c in gap if c],
                 "f_kind": "all",
                 "kind_choices": ["all", *sorted(d.table["kind"].unique().tolist())],
                 "flag_choices": FLAG_CHOICES,
@@ -174,17 +153,26 @@ class Platform:
                 "n_total": len(d.table),
                 "filter_ms": 0.0,
                 "headers": [
-                    {"title": f"{c} [{units[c]}]" if units.get(c) else c, "key": c, "sortable": True}
+                    {
+                        "title": "Shape-mode weights (SD)" if c == "weights" else label_with_unit(c),
+                        "key": c,
+                        "sortable": c != "weights",
+                        "hover": explain("w1") if c == "weights" else explain(c),
+                    }
                     for c in self.columns
                 ],
                 "rows": [],
                 "page": 1,
-                "per_page": 10,
+                "per_page": DEFAULT_PAGE_SIZE,
+                "page_sizes": list(PAGE_SIZES),
                 "sort_by": [],
                 "hist_svg": "",
                 "model_input": "",
-                "selected_id": "",
-                "shown": "the mean model (all weights 0 SD)",
+                "shown_key": "",  # what the 3D view shows: a model ID, "live:<weights>" or "fit"
+                "shown_kind": "",  # grid | patient | live | fit | '' (the mean)
+                "shown_file": "",  # the download's file name without suffix
+                "shown": "the mean model (all shape-mode weights 0 SD)",
+                "dl_formats": [],
                 "params": [],
                 "slider_names": [f"w{i + 1}" for i in range(self.n_sliders)],
                 "slider_lim": float(max(abs(v) for v in d.levels)),
@@ -201,7 +189,9 @@ class Platform:
                 "can_fit": d.can_fit,
                 "zip_progress": 0,
                 "zip_busy": False,
+                "zip_text": "",
                 "max_zip": self.max_zip,
+                "has_workbook": d.workbook is not None,
             }
         )
         for c in self.ranges:
@@ -216,18 +206,18 @@ class Platform:
         self.state.message_kind = "error"
         self.state.message = str(exc)
 
-    def info(self, text: str) -> None:
-        self.state.message_kind = "info"
-        self.state.message = text
+    def ok(self) -> None:
+        """A successful action: an earlier message no longer describes the page."""
+        self.state.message = ""
 
     # --------------------------------------------------------------------------- filter and table
     def current_filters(self) -> tuple[dict, dict, dict]:
         s = self.state
         ranges = {}
         for c in self.ranges:
-            lo, hi = parse_bound(s[f"f_{c}_lo"], f"{c} min"), parse_bound(s[f"f_{c}_hi"], f"{c} max")
+            lo, hi = parse_bound(s[f"f_{c}_lo"], f"{label(c)} min"), parse_bound(s[f"f_{c}_hi"], f"{label(c)} max")
             if lo is not None and hi is not None and lo > hi:
-                raise PlatformError(f"{c}: min {lo:g} exceeds max {hi:g}")
+                raise PlatformError(f"{label(c)}: min {lo:g} exceeds max {hi:g}")
             if (lo, hi) != (None, None):
                 ranges[c] = (lo, hi)
         more = parse_more_ranges(s.f_other)
@@ -236,7 +226,7 @@ class Platform:
         if bad:
             raise PlatformError(f"no numeric column {bad[0]!r}; e.g. TK_T1T12, DH_L4-L5, w1, min_sj_after")
         ranges.update(more)
-        cats = {"GAP_category": list(s.f_gap or [])} if "GAP_category" in self.data.table.columns else {}
+        cats = {"GAP_category": list(s.f_gap or [])} if "GAP_category" in self.columns else {}
         if s.f_kind != "all":
             cats["kind"] = [s.f_kind]
         flags = {f: {"any": None, "yes": True, "no": False}.get(s[f"f_{f}"]) for f in self.data.flags}
@@ -252,8 +242,9 @@ class Platform:
             self.error(exc)
             self._filter_error = True
             return
-        if getattr(self, "_filter_error", False):  # the filter is valid again: its message is obsolete
-            self.state.message, self._filter_error = "", False
+        if self._filter_error:  # the filter is valid again: its message is obsolete
+            self.ok()
+            self._filter_error = False
         self.state.n_match = int(self.mask.sum())
         self.state.page = 1
         self.update_rows()
@@ -264,33 +255,66 @@ class Platform:
         idx = np.flatnonzero(self.mask)
         for sb in reversed(list(s.sort_by or [])):
             key = sb.get("key") if isinstance(sb, dict) else None
-            if key in self.columns:
+            if key in self.columns and key != "weights":
                 vals = t[key].to_numpy()[idx]
                 o = np.argsort(
                     pd.Series(vals).fillna(-np.inf if vals.dtype.kind == "f" else "").to_numpy(), kind="stable"
                 )
                 idx = idx[o[::-1]] if sb.get("order") == "desc" else idx[o]
-        per = max(1, min(int(s.per_page if s.per_page and s.per_page > 0 else 10), 100))
+        per = int(s.per_page) if s.per_page in PAGE_SIZES else DEFAULT_PAGE_SIZE
         page = max(1, int(s.page or 1))
         sel = idx[(page - 1) * per : page * per]
-        sub = t.iloc[sel][self.columns]
-        s.rows = [{c: _cell(v) for c, v in zip(self.columns, r)} for r in sub.itertuples(index=False, name=None)]
+        s.rows = table_rows(t.iloc[sel], self.columns, self.data.weights)
 
     def on_options(self, options) -> None:
+        """The table's page, page size or sort changed (values checked by ``validate``)."""
         if isinstance(options, dict):
-            self.state.page = options.get("page", 1)
-            self.state.per_page = options.get("itemsPerPage", 10)
+            self.state.page = int(options.get("page", 1) or 1)
+            per = options.get("itemsPerPage", DEFAULT_PAGE_SIZE)
+            self.state.per_page = per if per in PAGE_SIZES else DEFAULT_PAGE_SIZE
             self.state.sort_by = options.get("sortBy", [])
         self.update_rows()
 
     def update_histograms(self) -> None:
-        from spinecohort.web.data import histogram_counts
-
         t = self.data.table
         hists = {p: histogram_counts(t[p].to_numpy(float), self.mask) for p in self.hist_params}
-        self.state.hist_svg = histogram_svg(hists, self.data.units())
+        self.state.hist_svg = histogram_svg(hists, {p: label_with_unit(p) for p in hists})
 
     # --------------------------------------------------------------------------- models in 3D
+    def _panel_rows(self, name: str) -> list[dict]:
+        row = self.data.table[self.data.table["model_id"] == name]
+        if row.empty:
+            return []
+        r = row.iloc[0]
+        out = []
+        for c in self.panel:
+            v = _cell(r[c])
+            if c == "GAP_category":
+                v = gap_words(v)
+            if v is None or v == "":
+                continue  # a blank line says nothing: the value is not measured for this model
+            out.append(
+                {"key": c, "name": label(c), "value": v, "unit": self.data.units().get(c, ""), "hover": explain(c)}
+            )
+        return out
+
+    def _show(self, key: str, kind: str, pts: np.ndarray, weights: np.ndarray, text: str, params: list[dict]) -> None:
+        """Put a shape on screen and make the panel and the downloads belong to it."""
+        s = self.state
+        self.shown_weights = np.zeros(self.n_sliders)
+        self.shown_weights[: min(len(weights), self.n_sliders)] = weights[: self.n_sliders]
+        s.shown_key, s.shown_kind, s.shown, s.params = key, kind, text, params
+        s.shown_file = {
+            "live": "shape_w" + "_".join(f"{x:+.2f}" for x in self.shown_weights),
+            "fit": "personalized",
+        }.get(kind, key)
+        s.dl_formats = FORMATS_OF[kind]
+        for i in range(self.n_sliders):
+            s[f"w_{i}"] = float(self.shown_weights[i])
+        self.scene.show(pts)
+        self.ok()
+        self.ctrl.view_update()
+
     def select(self, name=None) -> None:
         """Show a model (grid ID or patient ID typed or clicked) and its parameters."""
         name = self.state.model_input if name is None else name
@@ -302,47 +326,29 @@ class Platform:
             self.error(exc)
             return
         except Exception as exc:  # e.g. a model that cannot be repaired: say so, keep serving
-            log.exception("showing %s", name)
+            log.warning("showing %s: %s: %s", name, type(exc).__name__, exc)
             self.error(PlatformError(f"{name}: {type(exc).__name__}: {exc}"))
             return
-        self.selected = name
-        self.selected_weights = np.zeros(self.n_sliders)
-        self.selected_weights[: min(len(w), self.n_sliders)] = w[: self.n_sliders]
-        s = self.state
-        s.selected_id = name
-        s.model_input = name
-        s.message = ""
-        for i in range(self.n_sliders):
-            s[f"w_{i}"] = float(self.selected_weights[i])
-        self.scene.show(pts)
-        s.shown = f"{name} (weights {np.round(w, 3).tolist()} SD)"
-        row = self.data.table[self.data.table["model_id"] == name]
-        units = self.data.units()
-        s.params = (
-            []
-            if row.empty
-            else [
-                {"name": c, "value": _cell(row.iloc[0][c]), "unit": units.get(c, "")} for c in PANEL if c in row.columns
-            ]
-        )
-        self.ctrl.view_update()
+        self.state.model_input = name
+        kind = "grid" if name.startswith("model_") else "patient"
+        ws = f"shape-mode weights {np.round(w, 2).tolist()} SD" if len(w) else "weights not recorded in a release"
+        self._show(name, kind, pts, w, f"{name} ({ws})", self._panel_rows(name))
 
     def on_slider(self, **_) -> None:
         s = self.state
         w = np.array([float(s[f"w_{i}"]) for i in range(self.n_sliders)])
-        if np.allclose(w, self.selected_weights, atol=1e-9):
-            return  # set by select() (the stored model is shown) or unchanged
+        if np.allclose(w, self.shown_weights, atol=1e-9):
+            return  # set by _show() (the shape on screen) or unchanged
         t0 = time.perf_counter()
         try:
             pts = self.data.live_points(w)
         except PlatformError as exc:
             self.error(exc)
             return
-        self.scene.show(pts)
-        self.ctrl.view_update()
+        key = "live:" + ",".join(f"{x:.4f}" for x in w)
+        text = f"live shape: shape-mode weights {np.round(w, 2).tolist()} SD (hex SSM formula)"
+        self._show(key, "live", pts, w, text, [])
         s.live_ms = round(1e3 * (time.perf_counter() - t0), 1)
-        s.shown = f"live: hex SSM at weights {np.round(w, 2).tolist()} SD (linear formula)"
-        self.selected, self.selected_weights = None, w
 
     def set_overlay(self, which: str) -> None:
         s = self.state
@@ -353,13 +359,16 @@ class Platform:
             elif which == "mean":
                 self.scene.overlay(self.data.hex_ssm.mean)
                 s.overlay_label = "overlay: the mean model"
-            else:
+            elif which == "id":
                 name = self.data.check_id(s.overlay_input)
                 self.scene.overlay(self.data.model_points(name))
                 s.overlay_label = f"overlay: {name}"
+            else:
+                raise PlatformError(f"unknown overlay {str(which)[:10]!r}")
         except PlatformError as exc:
             self.error(exc)
             return
+        self.ok()
         self.ctrl.view_update()
 
     # --------------------------------------------------------------------------- find my patient
@@ -371,12 +380,17 @@ class Platform:
         except PlatformError as exc:
             self.error(exc)
             return
-        s.message = ""
+        self.ok()
         cols = list(targets)
         s.nearest = [
-            {"model_id": r["model_id"], "distance": round(float(r["distance"]), 3), **{c: _cell(r[c]) for c in cols}}
+            {
+                "model_id": r["model_id"],
+                "distance": round(float(r["distance"]), 2),
+                "values": "  ".join(f"{c} {r[c]:.1f}°" for c in cols if np.isfinite(r[c])),
+            }
             for _, r in near.iterrows()
         ]
+        s.fit_weights = []
         if not self.data.can_fit:
             s.fit_text = "continuous fit not available here (it needs the results' cohort.npz and a config)"
             return
@@ -389,325 +403,123 @@ class Platform:
             self.error(exc)
             s.fit_text = ""
             return
-        err = ", ".join(f"{p} {res.achieved[p] - v:+.2f}" for p, v in targets.items() if p in res.achieved)
+        err = ", ".join(f"{p} {res.achieved[p] - v:+.1f}°" for p, v in targets.items() if p in res.achieved)
         s.fit_weights = [float(x) for x in res.weights]
         self._fit, self._fit_targets = res, targets
         s.fit_text = (
-            f"continuous model: weights {np.round(res.weights, 2).tolist()} SD, posture {res.posture_deg:.2f} deg; "
-            f"fit error (achieved - target, deg): {err}"
+            f"continuous model: weights {np.round(res.weights, 2).tolist()} SD, posture {res.posture_deg:.1f}°; "
+            f"fit error (achieved − target): {err}"
         )
 
     def show_fit(self) -> None:
         from spinecohort.personalize import personalized_hex
 
-        res = getattr(self, "_fit", None)
+        res = self._fit
         if res is None:
             self.error(PlatformError("find a patient first"))
             return
         pts, _ = personalized_hex(self.data.template, self.data.hex_ssm, res.weights, res.posture_deg, name="fit")
-        self.scene.show(pts)
-        self.selected = None
-        self.state.shown = f"continuous personalized model (weights {np.round(res.weights, 2).tolist()} SD)"
-        self.ctrl.view_update()
+        params = [
+            {
+                "key": p,
+                "name": f"{label(p)} (achieved)",
+                "value": round(float(v), 2),
+                "unit": "deg",
+                "hover": explain(p),
+            }
+            for p, v in res.achieved.items()
+            if np.isfinite(v)
+        ]
+        text = f"continuous personalized model (weights {np.round(res.weights, 2).tolist()} SD)"
+        self._show("fit", "fit", pts, np.asarray(res.weights), text, params)
 
     # --------------------------------------------------------------------------- downloads
-    async def download_model(self, name, fmt):
-        loop = asyncio.get_running_loop()
-        try:
-            _, payload = await loop.run_in_executor(None, self.data.model_file, name, fmt)
-        except PlatformError as exc:
-            with self.state:
-                self.error(exc)
-            raise
-        return payload
+    def _refuse(self, exc: Exception, what: str) -> None:
+        """A refused download: the message in the page and one log line; the client gets no file."""
+        with self.state:
+            self.error(exc)
+        log.info("refused %s: %s", what, exc)
 
-    async def download_fit(self):
-        res = getattr(self, "_fit", None)
-        if res is None:
-            with self.state:
-                self.error(PlatformError("find a patient first"))
-            raise PlatformError("no fit")
+    async def download_shown(self, key, fmt):
+        """The shape on screen as ``fmt``: a grid model as ``export`` writes it, a patient's deck, or the
+        deck of the live or fitted weights.  ``key`` is what the page showed when clicked: if the view has
+        changed since, the click is refused rather than answered with another shape."""
         loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(None, self.data.fitted_deck, self._fit_targets, res)
+        s = self.state
+        try:
+            if key != s.shown_key or fmt not in s.dl_formats:
+                raise PlatformError(f"{str(fmt)[:5]} of {str(key)[:40]!r} is not what the page shows; click again")
+            if s.shown_kind in ("grid", "patient"):
+                payload = (await loop.run_in_executor(None, self.data.model_file, key, fmt))[1]
+            elif s.shown_kind == "fit":
+                payload = await loop.run_in_executor(None, self.data.fitted_deck, self._fit_targets, self._fit)
+            else:
+                w = self.shown_weights.copy()
+                payload = await loop.run_in_executor(None, self.data.weights_deck, w)
+        except PlatformError as exc:
+            self._refuse(exc, f"download {key!r} {fmt!r}")
+            return None
+        with s:
+            self.ok()
+        return payload
 
     def download_table(self, fmt):
         try:
-            return self.data.table_file(self.mask, fmt)[1]
+            if fmt == "workbook":
+                payload = self.data.workbook_bytes()
+            else:
+                payload = self.data.table_file(self.mask, fmt)[1]
         except PlatformError as exc:
-            with self.state:
-                self.error(exc)
-            raise
+            self._refuse(exc, f"table {fmt!r}")
+            return None
+        self.ok()
+        return payload
+
+    async def download_fit(self):
+        """The deck of the last continuous fit (without showing it first)."""
+        if self._fit is None:
+            self._refuse(PlatformError("find a patient first"), "fit deck")
+            return None
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(None, self.data.fitted_deck, self._fit_targets, self._fit)
 
     async def download_zip(self):
         s = self.state
-        t = self.data.table
-        names = t.loc[self.mask, "model_id"].astype(str).tolist()
-        if len(names) > self.max_zip:
-            with s:
-                self.error(PlatformError(f"{len(names)} models selected; a zip holds at most {self.max_zip}"))
-            raise PlatformError("too many models")
+        names = self.data.table.loc[self.mask, "model_id"].astype(str).tolist()
         loop = asyncio.get_running_loop()
 
         def progress(done, total):
             loop.call_soon_threadsafe(self._progress, done, total)
 
         with s:
-            s.zip_busy, s.zip_progress = True, 0
+            s.zip_busy, s.zip_progress, s.zip_text = True, 0, f"building 0 of {len(names)} decks"
         try:
-            return await loop.run_in_executor(None, lambda: self.data.decks_zip(names, progress, self.max_zip))
+            payload = await loop.run_in_executor(None, lambda: self.data.decks_zip(names, progress, self.max_zip))
         except PlatformError as exc:
-            with s:
-                self.error(exc)
-            raise
+            self._refuse(exc, "zip")
+            return None
         finally:
             with s:
-                s.zip_busy = False
+                s.zip_busy, s.zip_text = False, ""
+        with s:
+            self.ok()
+        return payload
 
     def _progress(self, done, total):
         with self.state:
             self.state.zip_progress = round(100 * done / total)
+            self.state.zip_text = f"building {done} of {total} decks"
 
     # --------------------------------------------------------------------------- wiring
+    def filter_keys(self) -> list[str]:
+        keys = [f"f_{x}_{b}" for x in self.ranges for b in ("lo", "hi")]
+        return keys + ["f_other", "f_gap", "f_kind"] + [f"f_{f}" for f in self.data.flags]
+
     def _register(self) -> None:
         s, c = self.state, self.ctrl
-        keys = [f"f_{x}_{b}" for x in self.ranges for b in ("lo", "hi")]
-        keys += ["f_other", "f_gap", "f_kind"] + [f"f_{f}" for f in self.data.flags]
-        s.change(*keys)(self.apply_filter)
+        s.change(*self.filter_keys())(self.apply_filter)
         s.change(*[f"w_{i}" for i in range(self.n_sliders)])(self.on_slider)
-        c.trigger("download_model")(self.download_model)
+        c.trigger("download_shown")(self.download_shown)
         c.trigger("download_table")(self.download_table)
         c.trigger("download_zip")(self.download_zip)
         c.trigger("download_fit")(self.download_fit)
-
-    def _build_ui(self) -> None:
-        from trame.ui.vuetify3 import SinglePageWithDrawerLayout
-        from trame.widgets import html
-        from trame.widgets import vtk as vtk_widgets
-        from trame.widgets import vuetify3 as v
-
-        dense = {"density": "compact", "hide_details": True, "variant": "outlined"}
-        with SinglePageWithDrawerLayout(self.server, width=430) as layout:
-            layout.title.set_text("spinecohort platform")
-            with layout.toolbar:
-                v.VSpacer()
-                html.Div("{{ title }}", classes="text-caption mr-4", id="data-title")
-            with layout.drawer:
-                with v.VContainer(classes="pa-2"):
-                    html.Div("Filter (bounds inclusive)", classes="text-subtitle-2")
-                    with v.VRow(dense=True):
-                        for c in self.ranges:
-                            unit = self.data.units().get(c, "")
-                            with v.VCol(cols=6):
-                                with v.VRow(dense=True, no_gutters=True):
-                                    v.VTextField(
-                                        v_model=(f"f_{c}_lo",),
-                                        label=f"{c} [{unit}] ≥" if unit else f"{c} ≥",
-                                        id=f"f_{c}_lo",
-                                        **dense,
-                                    )
-                                    v.VTextField(
-                                        v_model=(f"f_{c}_hi",), label="≤", id=f"f_{c}_hi", **dense, classes="ml-1"
-                                    )
-                    v.VTextField(
-                        v_model=("f_other",),
-                        label="more ranges: NAME lo:hi; ... (e.g. TK_T1T12 30:50; DH_L4-L5 8:)",
-                        id="f_other",
-                        classes="mt-2",
-                        **dense,
-                    )
-                    with v.VRow(dense=True, classes="mt-1"):
-                        with v.VCol(cols=6):
-                            v.VSelect(
-                                v_model=("f_gap",), items=("gap_choices",), label="GAP category", multiple=True, **dense
-                            )
-                        with v.VCol(cols=6):
-                            v.VSelect(v_model=("f_kind",), items=("kind_choices",), label="models", **dense)
-                        for f in self.data.flags:
-                            with v.VCol(cols=6):
-                                v.VSelect(v_model=(f"f_{f}",), items=("flag_choices",), label=f, **dense)
-                    html.Div(
-                        "{{ n_match }} of {{ n_total }} models match ({{ filter_ms }} ms)",
-                        id="match-count",
-                        classes="text-body-2 my-2",
-                    )
-                    html.Div(v_html=("hist_svg",), id="histograms")
-                    v.VDivider(classes="my-2")
-                    html.Div("Find my patient (deg; any subset, PI = PT + SS)", classes="text-subtitle-2")
-                    with v.VRow(dense=True):
-                        for k in ("PI", "PT", "SS", "LL"):
-                            with v.VCol(cols=3):
-                                v.VTextField(v_model=(f"pat_{k}",), label=k, id=f"pat_{k}", **dense)
-                    v.VBtn("find", click=self.find_patient, id="find", size="small", classes="mt-2")
-                    html.Div(
-                        "distance d = RMS over the given parameters of (model - target) / cohort SD",
-                        classes="text-caption",
-                    )
-                    with html.Table(classes="text-caption", v_show="nearest.length"):
-                        with html.Tr(v_for="r in nearest", key="r.model_id"):
-                            with html.Td():
-                                v.VBtn(
-                                    "{{ r.model_id }}",
-                                    variant="text",
-                                    size="x-small",
-                                    click=(self.select, "[r.model_id]"),
-                                )
-                            html.Td("d = {{ r.distance }}")
-                            html.Td("PI {{ r.PI }} PT {{ r.PT }} SS {{ r.SS }} LL {{ r.LL }}")
-                    html.Div("{{ fit_text }}", classes="text-caption", id="fit-text")
-                    with html.Div(v_show="fit_weights.length"):
-                        v.VBtn("show continuous model", click=self.show_fit, size="x-small", id="show-fit")
-                        v.VBtn(
-                            "its .inp",
-                            size="x-small",
-                            classes="ml-1",
-                            id="dl-fit",
-                            click="utils.download('personalized.inp', trigger('download_fit', []), 'text/plain')",
-                        )
-            with layout.content:
-                with v.VContainer(fluid=True, classes="pa-2"):
-                    v.VAlert(
-                        "{{ message }}",
-                        v_show="message",
-                        type=("message_kind",),
-                        density="compact",
-                        closable=True,
-                        click_close="message = ''",
-                        id="message",
-                    )
-                    v.VAlert(
-                        "Not in this folder: {{ missing.join('; ') }}",
-                        v_show="missing.length",
-                        type="info",
-                        density="compact",
-                        id="missing",
-                    )
-                    with v.VRow(dense=True):
-                        with v.VCol(cols=8):
-                            with v.VRow(dense=True, align="center"):
-                                v.VTextField(
-                                    v_model=("model_input",),
-                                    label="model ID (model_NNNNN or patient ID)",
-                                    id="model_input",
-                                    __events=["keyup"],
-                                    keyup_enter=(self.select, "[model_input]"),
-                                    **dense,
-                                )
-                                v.VBtn("show", click=(self.select, "[model_input]"), id="show", classes="ml-2")
-                                v.VTextField(
-                                    v_model=("overlay_input",),
-                                    label="compare with (ID)",
-                                    classes="ml-4",
-                                    id="overlay_input",
-                                    **dense,
-                                )
-                                v.VBtn("overlay", click=(self.set_overlay, "['id']"), size="small", classes="ml-1")
-                                v.VBtn("mean", click=(self.set_overlay, "['mean']"), size="small", classes="ml-1")
-                                v.VBtn("clear", click=(self.set_overlay, "['none']"), size="small", classes="ml-1")
-                            html.Div("{{ shown }} {{ overlay_label }}", classes="text-caption", id="shown")
-                            with html.Div(style="height: 480px; border: 1px solid #ddd", id="view-box"):
-                                view = self.view = vtk_widgets.VtkLocalView(self.scene.window, ref="view")
-                                self.ctrl.view_update = view.update
-                                self.ctrl.view_reset_camera = view.reset_camera
-                            with v.VRow(dense=True, classes="mt-1"):
-                                for i in range(self.n_sliders):
-                                    with v.VCol():
-                                        v.VSlider(
-                                            v_model=(f"w_{i}",),
-                                            min=("-slider_lim",),
-                                            max=("slider_lim",),
-                                            step=0.05,
-                                            label=f"w{i + 1}",
-                                            thumb_label=True,
-                                            hide_details=True,
-                                            density="compact",
-                                            id=f"slider_{i}",
-                                        )
-                            html.Div(
-                                "mode weights in SD; the sliders reshape the model live by the hex SSM's linear "
-                                "formula ({{ live_ms }} ms on the server)",
-                                classes="text-caption",
-                            )
-                        with v.VCol(cols=4):
-                            html.Div("{{ selected_id || 'no model selected' }}", classes="text-subtitle-2")
-                            with html.Table(classes="text-body-2", id="params"):
-                                with html.Tr(v_for="p in params", key="p.name"):
-                                    html.Td("{{ p.name }}")
-                                    html.Td("{{ p.value }}", id=("'param-' + p.name",))
-                                    html.Td("{{ p.unit }}")
-                            v.VDivider(classes="my-2")
-                            html.Div("Download", classes="text-subtitle-2")
-                            for fmt, mime in (
-                                ("inp", "text/plain"),
-                                ("stl", "application/octet-stream"),
-                                ("vtu", "application/xml"),
-                            ):
-                                v.VBtn(
-                                    f".{fmt}",
-                                    size="small",
-                                    classes="mr-1 mb-1",
-                                    disabled=("!selected_id",),
-                                    id=f"dl-{fmt}",
-                                    click=f"utils.download(`${{selected_id}}.{fmt}`, trigger('download_model', [selected_id, '{fmt}']), '{mime}')",
-                                )
-                            html.Br()
-                            v.VBtn(
-                                "table .csv",
-                                size="small",
-                                classes="mr-1 mb-1",
-                                id="dl-csv",
-                                click="utils.download('virtual_cohort_selection.csv', trigger('download_table', ['csv']), 'text/csv')",
-                            )
-                            v.VBtn(
-                                "table .xlsx",
-                                size="small",
-                                classes="mr-1 mb-1",
-                                id="dl-xlsx",
-                                click="utils.download('virtual_cohort_selection.xlsx', trigger('download_table', ['xlsx']), "
-                                "'application/vnd.openxmlformats-officedocument.spreadsheetml.sheet')",
-                            )
-                            v.VBtn(
-                                "decks of the selection (.zip, at most {{ max_zip }})",
-                                size="small",
-                                classes="mb-1",
-                                id="dl-zip",
-                                disabled=("zip_busy || n_match > max_zip",),
-                                click="utils.download('spinecohort_decks.zip', trigger('download_zip', []), 'application/zip')",
-                            )
-                            v.VProgressLinear(
-                                model_value=("zip_progress",), v_show="zip_busy", height=6, id="zip-progress"
-                            )
-                    with v.VDataTableServer(
-                        headers=("headers",),
-                        items=("rows",),
-                        items_length=("n_match",),
-                        page=("page",),
-                        items_per_page=("per_page",),
-                        sort_by=("sort_by",),
-                        update_options=(self.on_options, "[$event]"),
-                        density="compact",
-                        id="table",
-                        classes="mt-2",
-                    ):
-                        with v.Template(raw_attrs=['v-slot:item.model_id="{ item }"']):
-                            v.VBtn(
-                                "{{ item.model_id }}",
-                                variant="text",
-                                size="small",
-                                click=(self.select, "[item.model_id]"),
-                                classes="model-link",
-                                style="text-transform: none",
-                            )
-        self.layout = layout
-
-
-def serve(data: CohortData, host: str = "127.0.0.1", port: int = 8080, max_zip: int = MAX_ZIP_MODELS) -> None:
-    """Start the platform (blocking) on host:port; no timer stops it when the last browser leaves."""
-    from trame.app import get_server
-
-    argv, sys.argv = sys.argv, sys.argv[:1]  # trame reads its own options from sys.argv: ours are not for it
-    try:
-        server = get_server("spinecohort", client_type="vue3")
-        Platform(data, server, max_zip=max_zip)
-        server.start(host=host, port=port, open_browser=False, timeout=0, show_connection_info=False)
-    finally:
-        sys.argv = argv

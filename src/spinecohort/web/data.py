@@ -10,12 +10,9 @@ by an ID checked against the grid (``model_NNNNN``) or the known patients, never
 
 from __future__ import annotations
 
-import io
 import logging
 import re
 import tempfile
-import zipfile
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +21,17 @@ import pandas as pd
 
 from spinecohort.layout import Layout
 from spinecohort.measure.spinopelvic import UNITS
+from spinecohort.web.logic import (  # noqa: F401  (re-exported: the platform's one import place)
+    MAX_ZIP_BYTES,
+    MAX_ZIP_MODELS,
+    PlatformError,
+    bounded_zip,
+    filter_mask,
+    histogram_counts,
+    nearest_models,
+    parse_bound,
+    xlsx_bytes,
+)
 
 log = logging.getLogger(__name__)
 
@@ -33,18 +41,10 @@ MODEL_ID_RE = re.compile(r"^model_(\d{5})$")
 PATIENT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$")
 #: formats of one model's download (the ``spinecohort export`` formats)
 FORMATS = {"inp": "text/plain", "stl": "application/octet-stream", "vtu": "application/octet-stream"}
-#: bounds of one zip of decks: models, and bytes of the archive (a request beyond them is refused)
-MAX_ZIP_MODELS = 25
-MAX_ZIP_BYTES = 1_000_000_000
 #: the clinical parameters offered as range filters, in this order when present (``TK_*``, ``DH_*`` expand)
 FILTER_PARAMETERS = ("PI", "PT", "SS", "LL", "PI_minus_LL", "GT", "TPA", "TK_*", "Cobb", "SVA_*", "DH_*")
 #: the parameters of "find my patient" (deg)
 PATIENT_PARAMETERS = ("PI", "PT", "SS", "LL")
-
-
-class PlatformError(ValueError):
-    """A request the platform refuses (bad ID, out-of-range value, inconsistent targets, missing data):
-    its message is shown in the page and the server keeps serving."""
 
 
 # ------------------------------------------------------------------------------------------- pure helpers
@@ -71,109 +71,6 @@ def weight_columns(columns) -> list[str]:
     return sorted((c for c in columns if re.fullmatch(r"w\d+", c)), key=lambda c: int(c[1:]))
 
 
-def filter_mask(
-    table: pd.DataFrame,
-    ranges: dict[str, tuple[float | None, float | None]] | None = None,
-    categories: dict[str, list] | None = None,
-    flags: dict[str, bool | None] | None = None,
-) -> np.ndarray:
-    """Rows of ``table`` that satisfy every filter: inclusive numeric ``ranges`` (column -> (lo, hi), None =
-    open; NaN never matches; ``measure.tables.query_mask``, the test of ``spinecohort query``), ``categories`` (column -> allowed
-    values; an empty list allows all) and boolean ``flags`` (column -> required value; None = either)."""
-    from spinecohort.measure.tables import query_mask
-
-    keep = np.ones(len(table), bool)
-    ranges = {k: v for k, v in (ranges or {}).items() if v != (None, None)}
-    if ranges:
-        try:
-            keep &= query_mask(table, ranges)
-        except ValueError as exc:
-            raise PlatformError(str(exc)) from None
-    for col, allowed in (categories or {}).items():
-        if allowed:
-            keep &= table[col].isin(list(allowed)).to_numpy()
-    for col, want in (flags or {}).items():
-        if want is not None:
-            keep &= table[col].fillna(False).astype(bool).to_numpy() == bool(want)
-    return keep
-
-
-def nearest_models(
-    table: pd.DataFrame, targets: dict[str, float], k: int = 5, scale: dict[str, float] | None = None
-) -> pd.DataFrame:
-    """The ``k`` rows nearest to ``targets`` (parameter -> deg / mm) in the normalized distance
-
-        d = sqrt( mean over the given parameters p of ((x_p - t_p) / s_p)^2 )
-
-    with s_p the standard deviation of p over ``table`` (or ``scale``): d = 1 means one cohort SD away per
-    parameter on average.  Returns those rows with a ``distance`` column (dimensionless), nearest first."""
-    if not targets:
-        raise PlatformError("give at least one of PI, PT, SS, LL")
-    cols = list(targets)
-    x = table[cols].to_numpy(float)
-    t = np.array([targets[c] for c in cols], float)
-    s = np.array([(scale or {}).get(c, np.nanstd(table[c].to_numpy(float))) for c in cols], float)
-    s = np.where(s > 0, s, 1.0)  # a constant column (tiny test grids) counts in its own unit
-    d = np.sqrt(np.mean(((x - t) / s) ** 2, axis=1))
-    d = np.where(np.isfinite(d), d, np.inf)
-    order = np.argsort(d, kind="stable")[:k]
-    return table.iloc[order].assign(distance=d[order])
-
-
-def histogram_counts(values: np.ndarray, selected: np.ndarray, bins: int = 24) -> dict:
-    """Counts of all finite ``values`` and of the ``selected`` ones on shared edges (the selection drawn
-    over the whole cohort): {edges (bins + 1,), all (bins,), selected (bins,)}."""
-    v = np.asarray(values, float)
-    ok = np.isfinite(v)
-    lo, hi = (v[ok].min(), v[ok].max()) if ok.any() else (0.0, 1.0)
-    if hi <= lo:
-        lo, hi = lo - 0.5, hi + 0.5
-    edges = np.linspace(lo, hi, bins + 1)
-    return {
-        "edges": edges,
-        "all": np.histogram(v[ok], edges)[0],
-        "selected": np.histogram(v[ok & np.asarray(selected, bool)], edges)[0],
-    }
-
-
-def bounded_zip(
-    names: list[str],
-    build: Callable[[str], bytes],
-    max_models: int = MAX_ZIP_MODELS,
-    max_bytes: int = MAX_ZIP_BYTES,
-    progress: Callable[[int, int], None] | None = None,
-) -> bytes:
-    """A zip (deflated) of ``build(name)`` for each name, as ``<name>``; refused before any work when more
-    than ``max_models`` names are asked, and stopped as soon as the archive would pass ``max_bytes``.
-    ``progress(done, total)`` is called after each member."""
-    if not names:
-        raise PlatformError("no models to zip: select some rows first")
-    if len(names) > max_models:
-        raise PlatformError(f"{len(names)} models asked; a zip holds at most {max_models} (narrow the filter)")
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as z:
-        for i, name in enumerate(names):
-            z.writestr(name, build(name))
-            if buf.tell() > max_bytes:
-                raise PlatformError(f"the zip passed {max_bytes / 1e6:.0f} MB after {i + 1} models; ask for fewer")
-            if progress:
-                progress(i + 1, len(names))
-    return buf.getvalue()
-
-
-def parse_bound(text, name: str) -> float | None:
-    """A filter bound typed in the page: '' -> None (open), a number -> float, else PlatformError."""
-    if text is None or str(text).strip() == "":
-        return None
-    try:
-        v = float(text)
-    except (TypeError, ValueError):
-        raise PlatformError(f"{name}: '{text}' is not a number") from None
-    if not np.isfinite(v):
-        raise PlatformError(f"{name}: '{text}' is not a finite number")
-    return v
-
-
 # ------------------------------------------------------------------------------------------- the data
 @dataclass
 class Sources:
@@ -195,6 +92,7 @@ class Sources:
     hex_type: str
     fe: dict | None
     personalize: dict | None  # the config's personalize block (None: no continuous fit)
+    workbook: Path | None = None  # Descriptive_List.xlsx: the whole cohort as a prepared workbook
     measure: dict = field(default_factory=lambda: {"vertical": [0.0, 0.0, 1.0], "c7_proxy": "extrapolated"})
 
     @classmethod
@@ -219,6 +117,7 @@ class Sources:
             hex_type=config["template"]["hex_type"],
             fe=config.get("fe"),
             personalize=config.get("personalize"),
+            workbook=opt(L.descriptive_list),
             measure={
                 "vertical": m.get("vertical_axis", [0.0, 0.0, 1.0]),
                 "c7_proxy": m.get("c7_proxy", "extrapolated"),
@@ -252,6 +151,7 @@ class Sources:
             hex_type=src["hex_type"],
             fe=src["fe"],
             personalize=None,
+            workbook=opt(data / "Descriptive_List.xlsx"),
         )
 
 
@@ -489,6 +389,16 @@ class CohortData:
             progress=progress,
         )
 
+    @property
+    def workbook(self) -> Path | None:
+        """The run's prepared workbook of the whole cohort (``Descriptive_List.xlsx``), if there is one."""
+        return self.src.workbook
+
+    def workbook_bytes(self) -> bytes:
+        if self.src.workbook is None:
+            raise PlatformError("this folder has no Descriptive_List.xlsx (the whole cohort as a workbook)")
+        return Path(self.src.workbook).read_bytes()
+
     def table_file(self, mask: np.ndarray, fmt: str) -> tuple[str, bytes]:
         """The filtered table as CSV or xlsx, headers with units (``PI [deg]``)."""
         from spinecohort.measure.spinopelvic import parameter_table_header
@@ -497,9 +407,7 @@ class CohortData:
         if fmt == "csv":
             return "virtual_cohort_selection.csv", t.to_csv(index=False, float_format="%.6f").encode()
         if fmt == "xlsx":
-            buf = io.BytesIO()
-            t.to_excel(buf, index=False, sheet_name="selection", float_format="%.4f", engine="openpyxl")
-            return "virtual_cohort_selection.xlsx", buf.getvalue()
+            return "virtual_cohort_selection.xlsx", xlsx_bytes(t, "selection")
         raise PlatformError(f"unknown table format '{str(fmt)[:10]}' (csv | xlsx)")
 
     # ------------------------------------------------------------------- find my patient
@@ -548,15 +456,26 @@ class CohortData:
     def fitted_deck(self, targets: dict[str, float], res) -> bytes:
         """The .inp deck of a continuous fit, composed as ``spinecohort personalize --out`` composes it
         (``personalized_hex``, ``fe_model``, ``write_inp``, the same heading): the same bytes."""
-        from spinecohort.fe.abaqus import write_inp
-        from spinecohort.fe.export import fe_model, materials_from_config
-        from spinecohort.personalize import personalized_hex
-
-        pts, _ = personalized_hex(self.template, self.hex_ssm, res.weights, res.posture_deg, name="personalized model")
         heading = (
             f"spinecohort personalized model: targets {targets}, weights (SD) "
             f"{np.round(res.weights, 4).tolist()}, posture {res.posture_deg:.3f} deg"
         )
+        return self.weights_deck(res.weights, res.posture_deg, heading)
+
+    def weights_deck(self, weights, posture_deg: float = 0.0, heading: str | None = None) -> bytes:
+        """The .inp deck of continuous mode ``weights`` (SD): the hex SSM's shape with the contact
+        distraction, the Jacobian check and repair, turned by ``posture_deg`` (``personalized_hex``), in the
+        run's materials (``fe_model`` + ``write_inp``)."""
+        from spinecohort.fe.abaqus import write_inp
+        from spinecohort.fe.export import fe_model, materials_from_config
+        from spinecohort.personalize import personalized_hex
+
+        w = self.check_weights(weights)
+        heading = heading or f"spinecohort model of shape-mode weights (SD) {np.round(w, 4).tolist()}"
+        try:
+            pts, _ = personalized_hex(self.template, self.hex_ssm, w, posture_deg, name="personalized model")
+        except ValueError as exc:  # RepairError: a shape that cannot be made valid gets no deck
+            raise PlatformError(str(exc)) from None
         fe = fe_model(
             self.template,
             pts,
@@ -565,7 +484,7 @@ class CohortData:
             materials=materials_from_config(self.src.fe),
         )
         with tempfile.TemporaryDirectory(prefix="spinecohort-web-") as tmp:
-            out = Path(tmp) / "personalized.inp"
+            out = Path(tmp) / "model.inp"
             write_inp(fe, out, provenance=heading)
             return out.read_bytes()
 
@@ -590,5 +509,5 @@ def open_data(
 
 def describe(data: CohortData) -> str:
     """One line for the page header and the log."""
-    n_p = int((data.table["kind"] == "personalized").sum()) if "kind" in data.table.columns else 0
-    return f"{data.src.origin}: {len(data.virtual):,} virtual models, {n_p} personalized models"
+    n_p = int((data.table["kind"] != "virtual").sum()) if "kind" in data.table.columns else 0
+    return f"{data.src.origin}: {len(data.virtual):,} virtual models, {n_p} patient models"

@@ -79,13 +79,81 @@ def set_points(polydata, points: np.ndarray) -> None:
     polydata.Modified()
 
 
+def orientation_marker(bounds) -> object:
+    """An actor of three arrows with letters at the tips, R (right, +x), A (anterior, +y), S (superior, +z),
+    beside the posterior-inferior corner of ``bounds`` (mm): it turns with the model, so the directions stay
+    readable from any view.  Sized at 12 % of the model's height."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonTransforms import vtkTransform
+    from vtkmodules.vtkFiltersCore import vtkAppendPolyData
+    from vtkmodules.vtkFiltersGeneral import vtkTransformFilter
+    from vtkmodules.vtkFiltersSources import vtkArrowSource
+    from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+    from vtkmodules.vtkRenderingFreeType import vtkVectorText
+
+    b = np.asarray(bounds, float)
+    size = 0.12 * max(b[5] - b[4], 1.0)
+    origin = np.array([(b[0] + b[1]) / 2, b[2] - 0.3 * size, b[4]])
+    append = vtkAppendPolyData()
+    # (letter, colour, rotation taking +x to the axis, text offset): the letters face +x (the right lateral view)
+    for letter, rgb, rot in (
+        ("R", (0.85, 0.1, 0.1), (0.0, 0.0, 0.0, 1.0)),
+        ("A", (0.1, 0.6, 0.1), (90.0, 0.0, 0.0, 1.0)),
+        ("S", (0.1, 0.2, 0.85), (-90.0, 0.0, 1.0, 0.0)),
+    ):
+        arrow, text = vtkArrowSource(), vtkVectorText()
+        arrow.SetShaftResolution(12)
+        arrow.SetTipResolution(12)
+        text.SetText(letter)
+        direction = vtkTransform()
+        direction.Translate(*origin)
+        direction.RotateWXYZ(*rot)
+        direction.Scale(size, size, size)
+        tip = np.array(direction.TransformPoint(1.15, 0.0, 0.0))
+        place = vtkTransform()  # the letter in the y-z plane, facing +x, its lower left corner at the tip
+        place.Translate(*tip)
+        place.RotateWXYZ(90.0, 0.0, 1.0, 0.0)
+        place.RotateWXYZ(90.0, 0.0, 0.0, 1.0)
+        place.Scale(0.35 * size, 0.35 * size, 0.35 * size)
+        for src, tf in ((arrow, direction), (text, place)):
+            f = vtkTransformFilter()
+            f.SetInputConnection(src.GetOutputPort())
+            f.SetTransform(tf)
+            f.Update()
+            pd_ = f.GetOutput()
+            colours = numpy_to_vtk(
+                np.repeat((255 * np.array(rgb)).astype(np.uint8)[None], pd_.GetNumberOfCells(), axis=0), deep=True
+            )
+            colours.SetName("tissue_rgb")
+            pd_.GetCellData().SetScalars(colours)
+            append.AddInputData(pd_)
+    append.Update()
+    mapper = vtkPolyDataMapper()
+    mapper.SetInputData(append.GetOutput())
+    mapper.SetScalarModeToUseCellData()
+    mapper.SetColorModeToDirectScalars()
+    actor = vtkActor()
+    actor.SetMapper(mapper)
+    return actor
+
+
+def legend_entries() -> list[dict]:
+    """The tissue colours of the view for the page's legend: [{name, colour}] in drawing order."""
+    out = [{"name": name, "colour": c} for name, c in HEX_PART_STYLE.values()]
+    out.append({"name": SURFACE_STYLE[0], "colour": SURFACE_STYLE[1]})
+    out += [{"name": name, "colour": c} for name, c in LIGAMENT_STYLE.values()]
+    return out
+
+
 class Scene:
     """A render window (never rendered on the server) with the selected model and a translucent overlay."""
 
-    def __init__(self, template, points: np.ndarray, overlay_points: np.ndarray | None = None):
+    def __init__(
+        self, template, points: np.ndarray, overlay_points: np.ndarray | None = None, topology: dict | None = None
+    ):
         from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper, vtkRenderer, vtkRenderWindow
 
-        self.topology = model_topology(template)
+        self.topology = topology if topology is not None else model_topology(template)
         self.renderer = vtkRenderer()
         self.renderer.SetBackground(1.0, 1.0, 1.0)
         self.window = vtkRenderWindow()
@@ -108,16 +176,25 @@ class Scene:
             self.renderer.AddActor(actor)
             self.polydata.append(pd_)
             self.actor.append(actor)
+        self.marker = orientation_marker(self.polydata[0].GetBounds())
+        self.renderer.AddActor(self.marker)
         self.reset_camera()
 
-    def reset_camera(self) -> None:
-        """A lateral view of the whole model (x lateral, y anterior, z up): the local view never renders on
-        the server, so the camera must be placed before the first frame is serialised."""
+    def reset_camera(self, fill: float = 0.92) -> None:
+        """A right lateral view (frame RAS: x right, y anterior, z up; anterior to the right of the screen,
+        superior up) whose height the model fills to ``fill``: a spine is tall and thin, so fitting its
+        bounding sphere (VTK's ResetCamera) would leave it a sliver.  The local view never renders on the
+        server, so the camera must be placed before the first frame is serialised."""
+        b = np.array(self.polydata[0].GetBounds())
+        centre = (b[0::2] + b[1::2]) / 2
+        height = max(b[5] - b[4], b[3] - b[2], 1.0)  # z extent; the y extent if a model lies on its side
         cam = self.renderer.GetActiveCamera()
-        cam.SetFocalPoint(0.0, 0.0, 0.0)
-        cam.SetPosition(1.0, 0.0, 0.0)
+        cam.SetViewAngle(30.0)
+        dist = height / 2 / np.tan(np.radians(15.0)) / fill
+        cam.SetFocalPoint(*centre)
+        cam.SetPosition(centre[0] + dist + (b[1] - b[0]) / 2, centre[1], centre[2])
         cam.SetViewUp(0.0, 0.0, 1.0)
-        self.renderer.ResetCamera(self.polydata[0].GetBounds())
+        self.renderer.ResetCameraClippingRange()
 
     def show(self, points: np.ndarray) -> None:
         set_points(self.polydata[0], points)
