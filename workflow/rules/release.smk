@@ -1,4 +1,4 @@
-# Stage 10: the release, a verified BagIt bag of everything a data user downloads (docs/release.md).
+# Stage 10: the release, a verified BagIt bag of everything a data user downloads (docs/howto/release.md).
 from spinecohort.release import release_dir
 
 # schema-checked as a plain name; release_dir checks again, so no config value can put the bag outside R
