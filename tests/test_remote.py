@@ -105,7 +105,16 @@ def test_the_readme_lines_read_the_model_from_the_server(release, server, test_r
     block = re.search(r"Or straight from the record.*?```python\n(.*?)```", text, re.S).group(1)
     assert len([ln for ln in block.splitlines() if ln.strip()]) == 3
     scope = {"url": f"{server.url}/data/cohort.zarr.zip"}
+    server.clear_log()
     exec(block, scope)
+    # the zip's bytes sent: the two shard indexes and the model's two chunks (the references are fetched once)
+    sent = [r for r in server.requests() if r.uri.endswith(".zip")]
+    costs = _shard_costs(
+        release / "data" / "cohort.zarr.zip",
+        json.loads((release / "data" / "model_inputs" / "release.json").read_text())["mean_model_id"],
+    )
+    assert {r.status for r in sent} == {206}
+    assert sum(r.nbytes for r in sent) == sum(c["index"] + c["chunk"] for c in costs.values())
     mean = json.loads((release / "data" / "model_inputs" / "release.json").read_text())["mean_model_id"]
     local_tri, local_hex = read_model(test_run / "results" / "cohort.zarr", mean)
     assert np.array_equal(scope["tri_mm"], local_tri)
