@@ -188,3 +188,22 @@ def test_a_server_that_ignores_range_is_named(release, tmp_path):
             open_store(url)
         with pytest.raises(ReleaseError, match=r"ignores HTTP Range"):
             RemoteRelease(srv.url, cache_dir=tmp_path / "cache")
+
+
+def test_the_flat_deposit_reads_over_http_as_the_bag_does(release, test_run, tmp_path):
+    """The deposit's four files served flat (as a repository serves a record): the store read in place, the
+    model inputs read as members of bag.zip by range, from the folder's URL or the store zip's own URL."""
+    from spinecohort.release import make_deposit
+
+    make_deposit(release, tmp_path / "record")
+    _, local_hex = read_model(test_run / "results" / "cohort.zarr", MODEL)
+    with LocalServer(tmp_path / "record", tmp_path / "nginx") as srv:
+        for url in (srv.url, f"{srv.url}/cohort.zarr.zip"):
+            remote = RemoteRelease(url, cache_dir=tmp_path / "cache" / str(len(url)))
+            vm, template, info = remote.virtual_model(f"model_{MODEL:05d}")
+            assert np.array_equal(vm.hex_points, local_hex) and template.n_nodes == len(local_hex)
+            assert info["n_models"] == 27 and info["store"] == "cohort.zarr.zip"
+        # bag.zip is read by range too: its members, not the whole zip
+        sent = [r for r in srv.requests() if r.uri.endswith("bag.zip")]
+        assert all(r.status == 206 for r in sent)
+        assert sum(r.nbytes for r in sent) < (tmp_path / "record" / "bag.zip").stat().st_size
