@@ -5,10 +5,13 @@
 #   chromium, chromium-driver : a headless browser and its WebDriver, for the tests of the web platform
 #                  (tests/test_web.py drives `spinecohort serve` in a real Chromium; the platform itself needs
 #                  only the user's browser)
+#   nginx-light  : a static HTTP server that honours Range requests, for the tests and the benchmark of
+#                  reading the release over HTTP (tests/test_remote.py, benchmarks/bench_remote.py start their
+#                  own nginx on 127.0.0.1; Python's http.server ignores Range)
 # Usage: sudo scripts/install_system_deps.sh   (does nothing but report when not root)
 set -euo pipefail
 
-PACKAGES=(calculix-ccx chromium chromium-driver)
+PACKAGES=(calculix-ccx chromium chromium-driver nginx-light)
 
 missing=()
 for pkg in "${PACKAGES[@]}"; do

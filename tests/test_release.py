@@ -1,14 +1,14 @@
-"""The release bag (spinecohort.release, rule ``release``): a valid BagIt bag, verification that names what
-is wrong, reproducible archives, extraction that cannot escape its folder, config names that cannot move
-the release out of ``results``, and ``export`` from a release."""
+"""The release bag (spinecohort.release, rule ``release``): a valid BagIt bag with the store as one
+uncompressed zip, verification that names what is wrong, reproducible zips, extraction that cannot escape
+its folder, config names that cannot move the release out of ``results``, the flat deposit, and ``export``
+from a release."""
 
-import io
 import json
 import os
 import shutil
 import subprocess
 import sys
-import tarfile
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -16,7 +16,17 @@ import yaml
 
 from spinecohort.cli import main
 from spinecohort.config import ConfigError, validate_config
-from spinecohort.release import ReleaseError, payload_layout, release_dir, safe_extract, verify_release, write_archive
+from spinecohort.release import (
+    ReleaseError,
+    make_deposit,
+    payload_layout,
+    release_dir,
+    safe_extract,
+    verify_deposit,
+    verify_release,
+    write_zip,
+    zip_references,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
@@ -37,9 +47,9 @@ def bag(pristine, tmp_path):
 
 
 def test_release_is_a_valid_bag_with_the_whole_payload(pristine):
-    # the test config: 27 models in 3 shards of 9; a shard (~1.7 MB) exceeds part_size_mb 0.5 -> 1 part each
+    # the test config: 27 models in 3 shards of 9, all in one store zip
     rep = verify_release(pristine)
-    assert rep["parts"] == 3 and rep["models"] == 27
+    assert rep["shards"] == 3 and rep["models"] == 27
     assert (pristine / "bagit.txt").read_text().startswith("BagIt-Version: 1.0\n")
     data = pristine / "data"
     names = {p.relative_to(data).as_posix() for p in data.rglob("*") if p.is_file()}
@@ -47,14 +57,17 @@ def test_release_is_a_valid_bag_with_the_whole_payload(pristine):
         "Mean_Model (Template).inp",
         "Descriptive_List.xlsx",
         "README.md",
-        "cohort.zarr.parts.csv",
+        "cohort.zarr.zip",
+        "cohort.zarr.refs.json",
         "model_inputs/ssm.npz",
         "model_inputs/faces.npy",
         "figures/mode_variation.png",
     } <= names
-    assert sorted(n for n in names if n.startswith("cohort.zarr.part0")) == [
-        f"cohort.zarr.part00{k}.tar" for k in (1, 2, 3)
-    ]
+    # stored members only (a zarr zip store is read in place), every file of the store folder once
+    with zipfile.ZipFile(data / "cohort.zarr.zip") as zf:
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_STORED}
+        # 11 zarr.json (root, 7 arrays and groups, 3 shard records), the surface_vertex chunk, 3 shards x 3 objects
+        assert len(zf.namelist()) == len(set(zf.namelist())) == 21
     assert len([n for n in names if n.startswith("patients/P")]) == 8  # the 8 test patients
     record = json.loads((pristine / "metadata" / "files.json").read_text())
     assert record["counts"]["n_models"] == 27 and record["counts"]["n_hex_nodes"] == 23028  # coarse template
@@ -111,10 +124,22 @@ def _flip_byte(path: Path, offset: int) -> None:
 
 
 def test_verify_names_a_flipped_byte(bag):
-    part = bag / "data" / "cohort.zarr.part002.tar"
-    _flip_byte(part, part.stat().st_size // 2)
-    with pytest.raises(ReleaseError, match=r"data/cohort.zarr.part002.tar: sha256 checksum mismatch"):
+    store = bag / "data" / "cohort.zarr.zip"
+    _flip_byte(store, store.stat().st_size // 2)
+    with pytest.raises(ReleaseError, match=r"data/cohort.zarr.zip: sha256 checksum mismatch"):
         verify_release(bag)
+
+
+def test_store_check_names_the_corrupt_shard_object(bag):
+    """The store zip's own check (no manifests involved) names the member: a flipped byte inside shard 1's
+    tri/points object fails the zip's CRC-32 of that member."""
+    from spinecohort.release import check_store_zip
+
+    store = bag / "data" / "cohort.zarr.zip"
+    off = zip_references(store)["refs"]["tri/points/c/1/0/0"][1]
+    _flip_byte(store, off + 100)
+    with pytest.raises(ReleaseError, match=r"tri/points/c/1/0/0 \(shard 1\) is corrupt"):
+        check_store_zip(store)
 
 
 def test_verify_names_a_missing_file(bag):
@@ -132,35 +157,19 @@ def test_verify_names_extra_files(bag):
     assert "metadata/extra.json: in the bag but not in tagmanifest-sha256.txt (extra file)" in str(err.value)
 
 
-def test_verify_names_a_truncated_archive(bag, tmp_path):
-    part = bag / "data" / "cohort.zarr.part003.tar"
-    full = part.read_bytes()
-    part.write_bytes(full[: len(full) // 2])
+def test_verify_names_a_truncated_store_zip(bag, tmp_path):
+    store = bag / "data" / "cohort.zarr.zip"
+    full = store.read_bytes()
+    store.write_bytes(full[: len(full) // 2])
     with pytest.raises(
         ReleaseError,
-        match=rf"data/cohort.zarr.part003.tar: {len(full) // 2} bytes, but "
+        match=rf"data/cohort.zarr.zip: {len(full) // 2} bytes, but "
         rf"metadata/files.json records {len(full)} \(truncated",
     ):
         verify_release(bag)
-    # the unpacking step on its own: a tar cut inside a member is refused by name, whatever the manifests say
-    with pytest.raises(ReleaseError, match=r"part003.tar: not a complete tar archive"):
-        safe_extract(part, tmp_path / "out")
-
-
-def test_verify_says_when_the_disk_cannot_hold_the_unpacked_store(bag, tmp_path, monkeypatch):
-    """Unpacking needs the parts' bytes free where it unpacks; with 1 kB free the message names the place, both
-    sizes and the way out, before tar starts (a full disk used to surface as an OSError deep in tarfile)."""
-    import spinecohort.release as release
-
-    parts = sum(p.stat().st_size for p in (bag / "data").glob("cohort.zarr.part*.tar"))
-    real = shutil.disk_usage
-    monkeypatch.setattr(release.shutil, "disk_usage", lambda path: real(path)._replace(free=1000))
-    with pytest.raises(
-        ReleaseError, match=rf"{parts / 1e9:.2f} GB\) into {tmp_path}, which has 0.00 GB free.*--tmpdir"
-    ):
-        verify_release(bag, workdir=tmp_path)
-    monkeypatch.setattr(release.shutil, "disk_usage", real)
-    assert verify_release(bag, workdir=tmp_path)["files"] > 0  # enough space: it verifies
+    # extraction on its own: a zip cut in half has no central directory and is refused by name
+    with pytest.raises(ReleaseError, match=r"cohort.zarr.zip: not a complete zip archive"):
+        safe_extract(store, tmp_path / "out")
 
 
 def test_two_release_runs_give_byte_identical_bags(test_run, pristine):
@@ -186,10 +195,9 @@ def test_two_release_runs_give_byte_identical_bags(test_run, pristine):
     assert "rule release:" in proc.stdout + proc.stderr  # it really ran again
     for f in (
         "manifest-sha256.txt",
-        "data/cohort.zarr.part001.tar",
-        "data/cohort.zarr.part003.tar",
+        "data/cohort.zarr.zip",
+        "data/cohort.zarr.refs.json",
         "data/README.md",
-        "data/cohort.zarr.parts.csv",
     ):
         assert (again / f).read_bytes() == (pristine / f).read_bytes(), f
     # tag files carry the build date only; same day -> the same bytes too
@@ -197,8 +205,8 @@ def test_two_release_runs_give_byte_identical_bags(test_run, pristine):
         assert (again / "tagmanifest-sha256.txt").read_bytes() == (pristine / "tagmanifest-sha256.txt").read_bytes()
 
 
-def test_archives_do_not_depend_on_file_metadata(tmp_path):
-    # same bytes, different mtimes and permissions -> identical archives (fixed mtime, mode, owner, order)
+def test_zips_do_not_depend_on_file_metadata(tmp_path):
+    # same bytes, different mtimes and permissions -> identical zips (fixed date, mode, order)
     for k, (mtime, mode) in enumerate([(1_600_000_000, 0o600), (1_700_000_000, 0o644)]):
         root = tmp_path / f"s{k}"
         (root / "c" / "0").mkdir(parents=True)
@@ -206,47 +214,48 @@ def test_archives_do_not_depend_on_file_metadata(tmp_path):
             (root / rel).write_bytes(content)
             os.chmod(root / rel, mode)
             os.utime(root / rel, (mtime, mtime))
-        write_archive(tmp_path / f"a{k}.tar", root, ["c/0/0", "zarr.json"])
-    assert (tmp_path / "a0.tar").read_bytes() == (tmp_path / "a1.tar").read_bytes()
-    with tarfile.open(tmp_path / "a0.tar") as tar:
-        m = tar.getmembers()
-    assert [x.name for x in m] == ["cohort.zarr/c/0/0", "cohort.zarr/zarr.json"]
-    assert {(x.mtime, x.mode, x.uid, x.gid, x.uname) for x in m} == {(946684800, 0o644, 0, 0, "")}
+        write_zip(tmp_path / f"a{k}.zip", root, ["c/0/0", "zarr.json"])
+    assert (tmp_path / "a0.zip").read_bytes() == (tmp_path / "a1.zip").read_bytes()
+    with zipfile.ZipFile(tmp_path / "a0.zip") as zf:
+        m = zf.infolist()
+    assert [x.filename for x in m] == ["c/0/0", "zarr.json"]
+    assert {(x.date_time, x.external_attr >> 16, x.compress_type) for x in m} == {
+        ((1980, 1, 1, 0, 0, 0), 0o100644, zipfile.ZIP_STORED)
+    }
+    # the references give each member's bytes: offset 30 + name length (no extra field) past its header
+    refs = zip_references(tmp_path / "a0.zip")
+    assert refs["refs"]["zarr.json"] == "{}"  # metadata inlined
+    _, off, n = refs["refs"]["c/0/0"]
+    assert (off, n) == (30 + len("c/0/0"), 3072)
+    assert (tmp_path / "a0.zip").read_bytes()[off : off + n] == bytes(range(256)) * 12
 
 
-def _malicious(path: Path, member: tarfile.TarInfo, payload: bytes = b"x") -> Path:
-    with tarfile.open(path, "w", format=tarfile.PAX_FORMAT) as tar:
-        good = tarfile.TarInfo("cohort.zarr/zarr.json")
-        good.size = 2
-        tar.addfile(good, io.BytesIO(b"{}"))  # a harmless member first: nothing may be written at all
-        if member.isfile():
-            member.size = len(payload)
-            tar.addfile(member, io.BytesIO(payload))
-        else:
-            tar.addfile(member)
+def _malicious(path: Path, name: str, symlink: bool = False) -> Path:
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("cohort.zarr/zarr.json", b"{}")  # a harmless member first: nothing may be written at all
+        info = zipfile.ZipInfo(name)
+        if symlink:
+            info.create_system = 3
+            info.external_attr = 0o120777 << 16
+        zf.writestr(info, b"/etc/passwd" if symlink else b"x")
     return path
 
 
 @pytest.mark.parametrize(
-    "name, kind, message",
+    "name, symlink, message",
     [
-        ("../evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
-        ("cohort.zarr/../../evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
-        ("/tmp/spinecohort-evil.txt", tarfile.REGTYPE, "outside the extraction directory"),
-        ("cohort.zarr/link", tarfile.SYMTYPE, "is a symlink"),
-        ("cohort.zarr/hard", tarfile.LNKTYPE, "is a hard link"),
+        ("../evil.txt", False, "outside the extraction directory"),
+        ("cohort.zarr/../../evil.txt", False, "outside the extraction directory"),
+        ("/tmp/spinecohort-evil.txt", False, "outside the extraction directory"),
+        ("cohort.zarr/link", True, "is a symlink"),
     ],
 )
-def test_archive_members_cannot_escape_the_extraction_directory(tmp_path, name, kind, message):
-    m = tarfile.TarInfo(name)
-    m.type = kind
-    if kind in (tarfile.SYMTYPE, tarfile.LNKTYPE):
-        m.linkname = "/etc/passwd"
-    archive = _malicious(tmp_path / "bad.tar", m)
+def test_zip_members_cannot_escape_the_extraction_directory(tmp_path, name, symlink, message):
+    archive = _malicious(tmp_path / "bad.zip", name, symlink)
     dest = tmp_path / "out" / "deep"
     with pytest.raises(ReleaseError, match=message) as err:
         safe_extract(archive, dest)
-    assert "bad.tar" in str(err.value) and repr(name) in str(err.value)
+    assert "bad.zip" in str(err.value) and repr(name) in str(err.value)
     assert list(dest.rglob("*")) == []  # checked before anything is written
     assert not (tmp_path / "out" / "evil.txt").exists() and not Path("/tmp/spinecohort-evil.txt").exists()
 
@@ -320,10 +329,28 @@ def test_cli_verify_and_unpack(bag, tmp_path, capsys):
     from spinecohort.store.zarr_store import check_store
 
     assert main(["verify", str(bag)]) == 0
-    assert "3 archive parts unpack to a complete store of 27 models" in capsys.readouterr().out
+    assert "the store zip holds 3 intact shards of 27 models" in capsys.readouterr().out
     assert main(["unpack", str(bag), "--to", str(tmp_path / "u")]) == 0
-    assert check_store(tmp_path / "u" / "cohort.zarr") == []  # every shard's sha256 sidecar matches
+    assert check_store(tmp_path / "u" / "cohort.zarr") == []  # every shard's crc32c sidecar matches
     readme = bag / "data" / "README.md"
     readme.write_bytes(readme.read_bytes().replace(b"# ", b"#!", 1))  # same size: only sha256 can tell
-    assert main(["verify", str(bag), "--no-unpack"]) == 2
+    assert main(["verify", str(bag), "--no-store"]) == 2
     assert "data/README.md: sha256 checksum mismatch" in capsys.readouterr().err
+
+
+def test_deposit_is_flat_within_zenodos_limits_and_verifies(pristine, tmp_path, capsys):
+    """The deposit: 4 flat files (Zenodo: at most 100 files, 50 GB per record), the store zip the bag's own
+    bytes; downloaded into a folder, `verify` puts the bag back together and checks every sha256."""
+    out = tmp_path / "deposit"
+    assert main(["deposit", str(pristine), str(out)]) == 0
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["README.md", "bag.zip", "cohort.zarr.refs.json", "cohort.zarr.zip"]
+    assert all(p.is_file() and p.stat().st_size < 50e9 for p in out.iterdir())
+    assert (out / "cohort.zarr.zip").read_bytes() == (pristine / "data" / "cohort.zarr.zip").read_bytes()
+    assert verify_deposit(out)["models"] == 27
+    assert main(["verify", str(out)]) == 0 and "3 intact shards of 27 models" in capsys.readouterr().out
+    # a loose copy that differs from the bag's is named
+    (out / "cohort.zarr.refs.json").write_text("{}")
+    with pytest.raises(ReleaseError, match=r"cohort.zarr.refs.json: differs from data/cohort.zarr.refs.json"):
+        verify_deposit(out)
+    assert make_deposit(pristine, out)[1].read_bytes() == (pristine / "data" / "cohort.zarr.refs.json").read_bytes()

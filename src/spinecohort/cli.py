@@ -91,22 +91,29 @@ def _export(args: argparse.Namespace) -> int:
     from spinecohort.mesh.template import HexTemplate
     from spinecohort.ssm.model import SSM
 
-    if args.release:  # an unpacked release: its model_inputs/ hold everything (no config, no Snakemake)
-        from spinecohort.release import release_model_inputs
+    if args.release and _is_url(args.release):  # the stored coordinates, read over HTTP; nothing downloaded
+        from spinecohort.release.remote import RemoteRelease
 
-        src = release_model_inputs(args.release)
-        grid, hex_type = src["grid"], src["hex_type"]
-        faces = lambda: np.load(src["faces"], allow_pickle=False)  # noqa: E731
+        remote = RemoteRelease(args.release, cache_dir=args.cache_dir)
+        vm, template, src = remote.virtual_model(args.model_id)
+        hex_type = src["hex_type"]
+        faces = lambda: np.load(remote.file("model_inputs/faces.npy"), allow_pickle=False)  # noqa: E731
     else:
-        cfg, layout = _config_and_layout(args)
-        grid, hex_type = cfg["grid"], cfg["template"]["hex_type"]
-        fe_cfg = cfg.get("fe")  # materials of the deck (None: the defaults, equal to config/config.yaml)
-        src = {"ssm": layout.ssm, "hex_ssm": layout.hex_ssm, "template": layout.template}
-        faces = lambda: load_cohort_npz(layout.cohort).faces  # noqa: E731
-    template = HexTemplate.load(src["template"])
-    vm = virtual_model(
-        args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]), template, grid["n_modes"], grid["levels"]
-    )
+        if args.release:  # a release bag: its model_inputs/ hold everything (no config, no Snakemake)
+            from spinecohort.release import release_model_inputs
+
+            src = release_model_inputs(args.release)
+            grid, hex_type = src["grid"], src["hex_type"]
+            faces = lambda: np.load(src["faces"], allow_pickle=False)  # noqa: E731
+        else:
+            cfg, layout = _config_and_layout(args)
+            grid, hex_type = cfg["grid"], cfg["template"]["hex_type"]
+            src = {"ssm": layout.ssm, "hex_ssm": layout.hex_ssm, "template": layout.template, "fe": cfg.get("fe")}
+            faces = lambda: load_cohort_npz(layout.cohort).faces  # noqa: E731
+        template = HexTemplate.load(src["template"])
+        vm = virtual_model(
+            args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]), template, grid["n_modes"], grid["levels"]
+        )
     out = args.out or Path(f"model_{vm.model_id:05d}.{args.format}")
     from spinecohort.fe.export import materials_from_config
 
@@ -117,7 +124,7 @@ def _export(args: argparse.Namespace) -> int:
         template,
         faces(),
         hex_type,
-        materials=materials_from_config(src["fe"] if args.release else fe_cfg),
+        materials=materials_from_config(src["fe"]),
         load=args.load,
         moment_nmm=1000.0 * args.moment_nm,
         top=args.top,
@@ -126,35 +133,44 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _verify(args: argparse.Namespace) -> int:
-    from spinecohort.release import verify_release
+def _is_url(source) -> bool:
+    return str(source).lower().startswith(("http://", "https://"))
 
-    rep = verify_release(args.release, processes=args.processes, unpack=not args.no_unpack, workdir=args.tmpdir)
-    unpacked = (
-        f"; {rep['parts']} archive parts unpack to a complete store of {rep['models']} models" if "parts" in rep else ""
-    )
+
+def _verify(args: argparse.Namespace) -> int:
+    from spinecohort.release import BAG_ZIP, verify_deposit, verify_release
+
+    if (args.release / BAG_ZIP).is_file():  # a downloaded deposit: the bag put back together, then checked
+        rep = verify_deposit(args.release, processes=args.processes, workdir=args.tmpdir)
+    else:
+        rep = verify_release(args.release, processes=args.processes, store=not args.no_store)
+    store = f"; the store zip holds {rep['shards']} intact shards of {rep['models']} models" if "models" in rep else ""
     print(
         f"{args.release}: valid BagIt bag, {rep['files']} payload files ({rep['bytes'] / 1e6:.1f} MB), every "
-        f"sha256 matches{unpacked} ({rep['seconds']:.1f} s)"
+        f"sha256 matches{store} ({rep['seconds']:.1f} s)"
     )
     return 0
 
 
+def _deposit(args: argparse.Namespace) -> int:
+    from spinecohort.release import make_deposit
+
+    for p in make_deposit(args.release, args.out):
+        print(f"{p}  {p.stat().st_size / 1e6:.1f} MB")
+    return 0
+
+
 def _unpack(args: argparse.Namespace) -> int:
-    import csv
+    from spinecohort.release import STORE_ZIP, safe_extract
 
-    from spinecohort.release import PARTS_INDEX, safe_extract
-
-    data = Path(args.release) / "data"
-    index = data / PARTS_INDEX
-    if not index.is_file():
-        raise ValueError(f"{index} does not exist; is {args.release} a spinecohort release?")
-    dest = args.to or Path.cwd()  # outside the bag by default: extra files inside it would fail `verify`
-    if (dest / "cohort.zarr").exists():
-        raise ValueError(f"{dest / 'cohort.zarr'} already exists; remove it or choose another --to")
-    for row in csv.DictReader(index.open()):
-        safe_extract(data / row["part"], dest)
-    print(f"{dest / 'cohort.zarr'}")
+    src = Path(args.release) / "data" / STORE_ZIP
+    if not src.is_file():
+        raise ValueError(f"{src} does not exist; is {args.release} a spinecohort release?")
+    dest = (args.to or Path.cwd()) / "cohort.zarr"  # outside the bag by default: `verify` fails on extra files
+    if dest.exists():
+        raise ValueError(f"{dest} already exists; remove it or choose another --to")
+    safe_extract(src, dest)
+    print(dest)
     return 0
 
 
@@ -305,7 +321,14 @@ def _serve(args: argparse.Namespace) -> int:
         logging.getLogger(name).setLevel(logging.INFO)
         logging.getLogger(name).propagate = False
     sock = bind(args.host, args.port)  # a port in use is refused before the data are read
-    data = open_data(results=args.results, release=args.release, config=args.config)
+    if args.release and _is_url(args.release):  # the table and model inputs fetched once, models on demand
+        from spinecohort.release.remote import RemoteRelease, platform_model_points
+
+        remote = RemoteRelease(args.release, cache_dir=args.cache_dir, cache_mb=args.cache_mb)
+        data = open_data(release=remote.platform_folder())
+        data.model_points = platform_model_points(data, remote)
+    else:
+        data = open_data(results=args.results, release=args.release, config=args.config)
     for m in data.missing:
         print(f"spinecohort serve: not available: {m}", file=sys.stderr)
     settings = Settings(
@@ -357,10 +380,11 @@ def main(argv: list[str] | None = None) -> int:
     _add_config_args(e)
     e.add_argument(
         "--release",
-        type=Path,
-        help="build from a downloaded release (the bag folder) instead of "
-        "the results; needs neither config nor Snakemake",
+        help="build from a release instead of the results: the bag folder, or its http(s) URL (the bag, the "
+        "deposit, or its cohort.zarr.zip; the model's stored coordinates are read in place); needs neither "
+        "config nor Snakemake",
     )
+    e.add_argument("--cache-dir", type=Path, help="(--release URL) where fetched files go (default ~/.cache)")
     e.add_argument(
         "--load",
         choices=["flexion", "extension", "lateral_left", "lateral_right", "axial_left", "axial_right"],
@@ -373,17 +397,25 @@ def main(argv: list[str] | None = None) -> int:
 
     v = sub.add_parser(
         "verify",
-        help="check a release bag: every checksum, no missing or extra file, and the "
-        "archives unpack to a complete store",
+        help="check a release bag (or a downloaded deposit): every checksum, no missing or extra file, and "
+        "every shard of the store zip intact",
     )
-    v.add_argument("release", type=Path, help="the bag folder (results/release)")
-    v.add_argument("--no-unpack", action="store_true", help="only the BagIt checks (no unpacking)")
-    v.add_argument("--tmpdir", type=Path, help="where to unpack for the check (needs the store's size free)")
+    v.add_argument("release", type=Path, help="the bag folder (results/release) or the deposit's folder")
+    v.add_argument("--no-store", action="store_true", help="only the BagIt checks (not the store's shards)")
+    v.add_argument("--tmpdir", type=Path, help="(deposit) where bag.zip is unpacked for the check")
     v.add_argument("--processes", type=int, default=1, help="hashing processes (default 1)")
     v.set_defaults(func=_verify)
 
+    d = sub.add_parser(
+        "deposit",
+        help="the bag as the flat file list a repository takes: cohort.zarr.zip, bag.zip, README.md in OUT",
+    )
+    d.add_argument("release", type=Path, help="the bag folder (results/release)")
+    d.add_argument("out", type=Path, help="folder for the deposit's files (the store zip is hard-linked)")
+    d.set_defaults(func=_deposit)
+
     u = sub.add_parser(
-        "unpack", help="unpack a release's archive parts into DIR/cohort.zarr (checked: no member may leave DIR)"
+        "unpack", help="unpack a release's store zip into DIR/cohort.zarr (checked: no member may leave DIR)"
     )
     u.add_argument("release", type=Path, help="the bag folder")
     u.add_argument("--to", type=Path, help="destination folder (default: the current one)")
@@ -422,7 +454,13 @@ def main(argv: list[str] | None = None) -> int:
         "(read-only; binds 127.0.0.1 unless --host says otherwise)",
     )
     _add_config_args(sv)
-    sv.add_argument("--release", type=Path, help="serve a release bag instead (read in place, never written)")
+    sv.add_argument(
+        "--release",
+        help="serve a release instead: the bag folder (read in place, never written) or its http(s) URL (the "
+        "table and model inputs fetched once, models read on demand)",
+    )
+    sv.add_argument("--cache-dir", type=Path, help="(--release URL) the cache folder (default ~/.cache/spinecohort)")
+    sv.add_argument("--cache-mb", type=float, default=500.0, help="(--release URL) bound on cached models, MB")
     sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
     sv.add_argument("--port", type=int, default=8080)
     sv.add_argument("--max-zip", type=int, default=25, help="most decks in one zip download (default 25)")

@@ -30,6 +30,7 @@ with to_file(snakemake.log[0]) as log:
         settings["shard_models"],
         attrs=attrs,
         encoding=settings["encoding"],
+        chunk_models=settings["chunk_models"],
         overwrite=True,
         surface_vertex=surface_vertex,
     )

@@ -45,11 +45,11 @@ with to_file(snakemake.log[0]) as log:
         processes=snakemake.threads,
     )
     log.info(
-        "release %s: %d files, %.1f MB, %d archive parts; payload %.1f s, bag %.1f s, verify %.1f s",
+        "release %s: %d files, %.1f MB (store zip %.1f MB); payload %.1f s, bag %.1f s, verify %.1f s",
         bag,
         summary["files"],
         summary["bytes"] / 1e6,
-        summary["parts"],
+        summary["store_bytes"] / 1e6,
         summary["seconds_payload"],
         summary["seconds_bag"],
         summary["seconds_verify"],
