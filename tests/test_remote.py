@@ -207,3 +207,38 @@ def test_the_flat_deposit_reads_over_http_as_the_bag_does(release, test_run, tmp
         sent = [r for r in srv.requests() if r.uri.endswith("bag.zip")]
         assert all(r.status == 206 for r in sent)
         assert sum(r.nbytes for r in sent) < (tmp_path / "record" / "bag.zip").stat().st_size
+
+
+def test_serve_release_url_draws_a_model_fetched_by_its_browser_session(server, test_run, tmp_path):
+    """`spinecohort serve --release URL` end to end: each browser session is a process forked from the
+    server, and the model it shows is read over HTTP by that process (nginx serves its byte ranges)."""
+    import signal
+    import subprocess
+    import sys
+
+    from test_web_browser import CHROMEDRIVER, CHROMIUM, _free_port, _show, chrome, open_page
+    from test_web import wait_for_server
+
+    if not (Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists()):
+        pytest.fail("Chromium is missing: run scripts/install_system_deps.sh")
+    port = _free_port()
+    log = tmp_path / "serve.log"
+    cmd = [sys.executable, "-m", "spinecohort.cli", "serve", "--port", str(port), "--release", server.url]
+    cmd += ["--cache-dir", str(tmp_path / "cache"), "--max-sessions", "2"]
+    proc = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
+    drv = None
+    try:
+        wait_for_server(f"http://127.0.0.1:{port}/status", proc, log)
+        server.clear_log()
+        drv = open_page(chrome(tmp_path / "downloads"), f"http://127.0.0.1:{port}/")
+        _show(drv, f"model_{MODEL:05d}")
+        zip_ranges = [r for r in server.requests() if r.uri.endswith("cohort.zarr.zip")]
+        assert zip_ranges and all(r.status == 206 for r in zip_ranges), zip_ranges
+        cached = np.load(tmp_path / "cache" / "models" / f"model_{MODEL:05d}.npz")  # what the session drew
+        assert np.array_equal(cached["hex"], read_model(test_run / "results" / "cohort.zarr", MODEL)[1])
+    finally:
+        if drv is not None:
+            drv.quit()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=20)
