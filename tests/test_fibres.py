@@ -22,7 +22,7 @@ from spinecohort.fe.fibres import (
     fibre_table,
     trilinear_weights,
 )
-from spinecohort.mesh.quality import hex_volumes
+from spinecohort.mesh.quality.verdict import hex_volumes
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed")
 

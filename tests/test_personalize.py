@@ -9,7 +9,7 @@ import yaml
 
 from spinecohort.fe.abaqus import read_inp_nodes
 from spinecohort.layout import Layout
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.personalize import (
     CORE_PARAMETERS,

@@ -6,7 +6,7 @@ from spinecohort.fe.abaqus import write_vtu
 from spinecohort.fe.export import fe_model
 from spinecohort.logs import Progress, to_file
 from spinecohort.mesh.morph import MorphParameters, morph_template
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
 

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spinecohort.mesh.quality import HEX_CORNER_UVW, hex_volumes
+from spinecohort.mesh.quality.element import HEX_CORNER_UVW
+from spinecohort.mesh.quality.verdict import hex_volumes
 
 #: natural coordinates (-1..1) of the 8 corners of a C3D8 hex, Abaqus/ccx node order (quality's 0..1 corners)
 HEX8_NATURAL = 2.0 * HEX_CORNER_UVW - 1.0

@@ -14,7 +14,7 @@ from spinecohort.cohort.landmarks import DISCS
 from spinecohort.fe.export import fe_model
 from spinecohort.mesh.contact import resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.repair import RepairError, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.registration import nonrigid_register, surface_distance
 from spinecohort.mesh.template import HexTemplate, OGrid, core_boundary_ids, fill_discs
 

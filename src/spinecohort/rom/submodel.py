@@ -350,7 +350,7 @@ def potted_plate(
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
     """Refuse a model with an inverted (or too distorted) hex before the solver is called; returns the
     minimum scaled Jacobian."""
-    from spinecohort.mesh.quality import scaled_jacobian
+    from spinecohort.mesh.quality.verdict import scaled_jacobian
 
     hexes = np.concatenate([c[:, :8] for t, c in model.fe.element_blocks.values() if t in SOLID_TYPES])
     sj = scaled_jacobian(model.fe.nodes, hexes)
