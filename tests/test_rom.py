@@ -1086,7 +1086,7 @@ def test_mode_table_keeps_a_model_short_of_the_full_load_and_runs_each_mode_thro
 
 
 def test_sensitivity_and_mode_figures_are_written(tmp_path):
-    from spinecohort.figures import rom_modes_figure, rom_sensitivity_figure
+    from spinecohort.figures.rom import rom_modes_figure, rom_sensitivity_figure
 
     sens = pd.DataFrame(
         {
