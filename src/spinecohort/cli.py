@@ -209,7 +209,8 @@ def _query(args: argparse.Namespace) -> int:
 def _personalize(args: argparse.Namespace) -> int:
     from spinecohort.cohort.landmarks import Landmarks
     from spinecohort.measure.spinopelvic import UNITS
-    from spinecohort.personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
+    from spinecohort.personalize.cohort import Settings, build_model, personalized_hex
+    from spinecohort.personalize.parameters import complete_pelvic_targets
     from spinecohort.ssm.model import SSM
 
     filters = args.filters

@@ -12,7 +12,8 @@ from spinecohort.fe.export import fe_model, materials_from_config, write_deck
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.personalize import Settings, personalize_cohort, personalized_hex, report_markdown
+from spinecohort.personalize.cohort import Settings, personalize_cohort, personalized_hex
+from spinecohort.personalize.report import report_markdown
 from spinecohort.ssm.model import SSM
 
 with to_file(snakemake.log[0]) as log:

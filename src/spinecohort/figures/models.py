@@ -180,7 +180,7 @@ def personalized_gallery_figure(
     posture and size compare), each labelled with its patient ID (the seed's Figure 9).
 
     table: one row per patient x method with columns ``ID``, ``method`` and ``b1..bk`` (mode weights in SD
-    units), optionally ``posture_deg`` (sagittal rotation, ``personalize.pose``); rows with
+    units), optionally ``posture_deg`` (sagittal rotation, ``personalize.parameters.pose``); rows with
     ``method == method`` are used in the table's order.  Returns the IDs shown."""
     if "method" not in table.columns or "ID" not in table.columns:
         raise ValueError("the personalization table needs columns 'ID' and 'method'")
@@ -199,7 +199,7 @@ def personalized_gallery_figure(
         raise ValueError("the personalization table has missing or non-finite weights")
     points = hex_ssm.sample(weights)  # (n, n_nodes, 3) mm
     if "posture_deg" in rows.columns:  # the fitted sagittal posture, turned as in the personalized decks
-        from spinecohort.personalize import pose
+        from spinecohort.personalize.parameters import pose
 
         points = pose(points, rows["posture_deg"].fillna(0.0).to_numpy(float))
     ids = rows["ID"].astype(str).tolist()

@@ -398,7 +398,7 @@ class Platform:
         )
 
     def show_fit(self) -> None:
-        from spinecohort.personalize import personalized_hex
+        from spinecohort.personalize.cohort import personalized_hex
 
         res = getattr(self, "_fit", None)
         if res is None:

@@ -428,7 +428,7 @@ class CohortData:
                 return read_deck_points(self.src.personalized_dir / f"{name}.inp", self.template)
             except ValueError:
                 raise PlatformError(f"{name}.inp does not have the template's {self.template.n_nodes} nodes") from None
-        from spinecohort.personalize import personalized_hex
+        from spinecohort.personalize.cohort import personalized_hex
 
         row = self.personalization[self.personalization["ID"].astype(str) == name].iloc[0]
         posture = float(row["posture_deg"]) if "posture_deg" in row.index and np.isfinite(row["posture_deg"]) else 0.0
@@ -505,7 +505,7 @@ class CohortData:
     # ------------------------------------------------------------------- find my patient
     def check_targets(self, targets: dict) -> dict[str, float]:
         """PI/PT/SS/LL typed in the page (any subset; '' = not given) -> targets with PI = PT + SS enforced."""
-        from spinecohort.personalize import complete_pelvic_targets
+        from spinecohort.personalize.parameters import complete_pelvic_targets
 
         given = {}
         for k in PATIENT_PARAMETERS:
@@ -539,7 +539,7 @@ class CohortData:
             raise PlatformError("the continuous fit needs the results' cohort.npz and the config's personalize block")
         if self._fit_model is None:
             from spinecohort.cohort.landmarks import Landmarks
-            from spinecohort.personalize import Settings, build_model
+            from spinecohort.personalize.cohort import Settings, build_model
 
             settings = Settings.from_config(self.src.personalize, self.n_modes)
             self._fit_model = build_model(self.ssm, Landmarks.from_cohort(self.src.cohort), settings, self.src.measure)
@@ -550,7 +550,7 @@ class CohortData:
         (``personalized_hex``, ``fe_model``, ``write_inp``, the same heading): the same bytes."""
         from spinecohort.fe.abaqus import write_inp
         from spinecohort.fe.export import fe_model, materials_from_config
-        from spinecohort.personalize import personalized_hex
+        from spinecohort.personalize.cohort import personalized_hex
 
         pts, _ = personalized_hex(self.template, self.hex_ssm, res.weights, res.posture_deg, name="personalized model")
         heading = (
