@@ -153,9 +153,9 @@ def test_the_exported_deck_solves_under_a_pure_moment(template, tmp_path):
     # long for CI).  Since the deck carries the facet gaps (session 5) a 25 N.mm increment diverges after 21
     # iterations; 6.25 N.mm converges in 4-6 (session 15: one increment instead of four, ~1 min instead of 3).
     # Before the connectors this deck diverged (displacement increments ~1e15 mm).
-    from spinecohort.fe.abaqus import format_id_list
     from spinecohort.fe.calculix import run_ccx
     from spinecohort.fe.facets import vertebra_frame
+    from spinecohort.fe.writers import format_id_list
 
     fe = fe_model(template)
     deck = write_deck(fe, tmp_path / "model.inp")

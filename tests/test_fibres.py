@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from spinecohort.fe.abaqus import FEModel, NeoHooke, Orientation, Section, UserMaterial, model_to_inp_text
+from spinecohort.fe.abaqus import FEModel, NeoHooke, Orientation, Section, UserMaterial
 from spinecohort.fe.fibres import (
     BIN_RATIO,
     HEX8_NATURAL,
@@ -22,6 +22,7 @@ from spinecohort.fe.fibres import (
     fibre_table,
     trilinear_weights,
 )
+from spinecohort.fe.writers import model_to_inp_text
 from spinecohort.mesh.quality.verdict import hex_volumes
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed")

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from spinecohort.fe.abaqus import read_inp_nodes
+from spinecohort.fe.inp_template import read_inp_nodes
 from spinecohort.layout import Layout
 from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import HexTemplate

@@ -16,12 +16,13 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, model_to_inp_text, write_inp
+from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.connections import arch_nodes
 from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials, materials_from_config, read_deck_points
 from spinecohort.fe.facets import FacetContact, facet_gaps, vertebra_frame
 from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
+from spinecohort.fe.writers import model_to_inp_text, write_inp
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import accepted_interval, orderings, validate, validation_markdown
 from spinecohort.rom.deck import rom_deck_text
@@ -567,8 +568,8 @@ def test_gap_element_closes_at_its_clearance(tmp_path):
     # node 2 pulled towards the fixed node 1 by 100 N against a 10 N/mm spring to a fixed node 3; the gap
     # (clearance 0.5 mm, 1000 N/mm, direction 1 -> 2) closes after 0.5 mm: 100 = 10 u + 1000 (u - 0.5)
     # -> u = 600 / 1010 = 0.59406 mm (without the gap: 10 mm)
-    from spinecohort.fe.abaqus import model_to_inp_text
     from spinecohort.fe.calculix import run_ccx
+    from spinecohort.fe.writers import model_to_inp_text
 
     fe = FEModel(
         np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]),
@@ -594,9 +595,9 @@ def test_contact_strut_closes_at_its_clearance_in_any_direction(tmp_path):
     # 30 deg off the x axis, in series with the same 10 N/mm spring and 100 N as the gap test above: it closes
     # after 0.5 mm of shortening, 100 = 10 u + 1000 (u - 0.5) -> u = 600 / 1010 = 0.59406 mm along the strut
     # (the rounded corner, 0.05 mm wide, shifts the linear part by 0.025 mm: u = 625 / 1010 = 0.61881 mm)
-    from spinecohort.fe.abaqus import model_to_inp_text
     from spinecohort.fe.calculix import run_ccx
     from spinecohort.fe.facets import strut_table
+    from spinecohort.fe.writers import model_to_inp_text
 
     d = np.array([np.cos(np.radians(30.0)), np.sin(np.radians(30.0)), 0.0])
     fe = FEModel(

@@ -357,7 +357,7 @@ def _drawn_share(px: np.ndarray) -> float:
 def test_browser_filter_select_slide_download(browser, server, test_run, tmp_path_factory):
     from selenium.webdriver.common.keys import Keys
 
-    from spinecohort.fe.abaqus import read_inp_nodes
+    from spinecohort.fe.inp_template import read_inp_nodes
     from spinecohort.store.zarr_store import read_model
 
     drv = browser

@@ -248,8 +248,8 @@ def _personalize(args: argparse.Namespace) -> int:
         t = targets.get(p, float("nan"))
         print(f"{p:<12}{t:>10.3f}{res.achieved[p]:>10.3f}{res.achieved[p] - t:>9.3f}  {UNITS.get(p, '')}")
     if args.out:
-        from spinecohort.fe.abaqus import write_vtu
         from spinecohort.fe.export import fe_model, materials_from_config, write_deck
+        from spinecohort.fe.writers import write_vtu
         from spinecohort.mesh.hex_ssm import HexSSM
         from spinecohort.mesh.template import HexTemplate
 

@@ -2,8 +2,8 @@
 import numpy as np
 
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.abaqus import write_vtu
 from spinecohort.fe.export import fe_model
+from spinecohort.fe.writers import write_vtu
 from spinecohort.logs import Progress, to_file
 from spinecohort.mesh.morph import MorphParameters, morph_template
 from spinecohort.mesh.quality.verdict import scaled_jacobian

@@ -33,19 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from spinecohort.fe.abaqus import (
-    FEModel,
-    LinearElastic,
-    MooneyRivlin,
-    NeoHooke,
-    Orientation,
-    Section,
-    UserMaterial,
-    write_inp,
-    write_vtu,
-)
+from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, NeoHooke, Orientation, Section, UserMaterial
 from spinecohort.fe.facets import FacetContact
 from spinecohort.fe.fibres import EmbeddedFibres, embedded_fibres
+from spinecohort.fe.writers import write_inp, write_vtu
 from spinecohort.mesh.template import LIGAMENT_GROUPS, RIM_TISSUE, HexTemplate
 
 
@@ -574,7 +565,7 @@ def check_deck(model: FEModel, deck: str) -> None:
 def read_deck_points(deck: str | Path, template: HexTemplate) -> np.ndarray:
     """The template-node coordinates (n_nodes, 3) mm of an exported deck: its first N nodes, ids 1..N (the
     facet-joint nodes after them derive from these); ValueError naming the deck if it is not an export."""
-    from spinecohort.fe.abaqus import read_inp_nodes
+    from spinecohort.fe.inp_template import read_inp_nodes
 
     ids, points = read_inp_nodes(deck)
     n = template.n_nodes

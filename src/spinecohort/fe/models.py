@@ -107,8 +107,8 @@ def write_model(
     load: an ``inp`` with a pure-moment step (`spinecohort.rom.deck.LOAD_CASES`: pelvis fixed, `moment_nmm`
     N.mm on vertebra `top`), ready for ``ccx -i <job>``; None: the model data alone."""
     from spinecohort.cohort.stl_io import write_stl
-    from spinecohort.fe.abaqus import write_vtu
     from spinecohort.fe.export import check_deck, write_deck
+    from spinecohort.fe.writers import write_vtu
 
     if load is not None and fmt != "inp":
         raise ValueError(f"--load needs --format inp, not {fmt}")

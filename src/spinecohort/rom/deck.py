@@ -10,8 +10,9 @@ import dataclasses
 import numpy as np
 
 from spinecohort.cohort.landmarks import LEVELS
-from spinecohort.fe.abaqus import FEModel, format_id_list, model_to_inp_text
+from spinecohort.fe.abaqus import FEModel
 from spinecohort.fe.connections import body_layer
+from spinecohort.fe.writers import format_id_list, model_to_inp_text
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.submodel import RomError, RomModel
 

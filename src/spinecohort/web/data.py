@@ -548,8 +548,8 @@ class CohortData:
     def fitted_deck(self, targets: dict[str, float], res) -> bytes:
         """The .inp deck of a continuous fit, composed as ``spinecohort personalize --out`` composes it
         (``personalized_hex``, ``fe_model``, ``write_inp``, the same heading): the same bytes."""
-        from spinecohort.fe.abaqus import write_inp
         from spinecohort.fe.export import fe_model, materials_from_config
+        from spinecohort.fe.writers import write_inp
         from spinecohort.personalize.cohort import personalized_hex
 
         pts, _ = personalized_hex(self.template, self.hex_ssm, res.weights, res.posture_deg, name="personalized model")
