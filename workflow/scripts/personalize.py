@@ -8,7 +8,8 @@ import pandas as pd
 
 from spinecohort.atomic import atomic_write
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.export import fe_model, materials_from_config, write_deck
+from spinecohort.fe.export import fe_model, write_deck
+from spinecohort.fe.materials import materials_from_config
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate

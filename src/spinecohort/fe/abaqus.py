@@ -193,7 +193,7 @@ class FEModel:
         (a partial-CEP T10-S1 model: the disc under the loaded T10 closed 0.34 mm against 0.13 mm in T10-T12 at the
         same flexion, and the model stalled at 69 %); on fixed nodes the tie's share of the force leaves ccx's
         reaction output (58 N of a functional unit's axial reaction missing) and stalled a lumbar model (test-config
-        L5-S1 flexion at 26.5 %).  docs/rom.md "Session 16"."""
+        L5-S1 flexion at 26.5 %); docs/explanation/fe-model.md."""
         if self.embedded_ties is None or not len(self.embedded_ties[0]):
             return np.zeros(0, np.int64)
         return np.unique(np.asarray(self.embedded_ties[0], dtype=np.int64)[:, 1:])

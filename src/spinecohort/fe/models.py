@@ -103,8 +103,8 @@ def write_model(
 ) -> Path:
     """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model).
 
-    materials: `spinecohort.fe.export.FEMaterials` (default: config/config.yaml's ``fe`` values).
-    load: an ``inp`` with a pure-moment step (`spinecohort.rom.deck.LOAD_CASES`: pelvis fixed, `moment_nmm`
+    materials: `spinecohort.fe.materials.FEMaterials` (default: config/config.yaml's ``fe`` values).
+    load: an ``inp`` with a pure-moment step (`spinecohort.fe.pure_moment.LOAD_CASES`: pelvis fixed, `moment_nmm`
     N.mm on vertebra `top`), ready for ``ccx -i <job>``; None: the model data alone."""
     from spinecohort.cohort.stl_io import write_stl
     from spinecohort.fe.export import check_deck, write_deck
@@ -122,7 +122,7 @@ def write_model(
         if load is None:
             write_deck(fe, out, provenance=heading)
         else:
-            from spinecohort.rom.deck import model_load_text
+            from spinecohort.fe.pure_moment import model_load_text
 
             check_deck(fe, str(out))
             out.write_text(model_load_text(fe, template, load, top, moment_nmm))

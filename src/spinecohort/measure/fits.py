@@ -102,8 +102,9 @@ def _least_eigenpairs_nb(cov, w0, v0):
 
     Written here rather than ``np.linalg.eigh`` because LAPACK's per-matrix overhead made that ~0.9-1.3 us per
     3x3 matrix (2 x 35 patches x 16,807 models per store stage); this takes 0.27-0.38 us (the stage's measure
-    phase 4.9 -> 4.2 s CPU, docs/store.md session 22).  Jacobi is accurate to round-off in every eigenpair, including the nearly-zero
-    out-of-plane variance of a flat patch beside two nearly equal in-plane ones (tested against LAPACK)."""
+    phase: 4.2 s CPU against 4.9 s with ``eigh``; docs/explanation/performance.md).  Jacobi is accurate to
+    round-off in every eigenpair, including the nearly-zero out-of-plane variance of a flat patch beside two nearly
+    equal in-plane ones (tested against LAPACK)."""
     a = np.empty((3, 3))
     v = np.empty((3, 3))
     for m in range(cov.shape[0]):

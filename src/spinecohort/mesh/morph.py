@@ -45,7 +45,7 @@ class MorphParameters:
     kd_scale: float = 7.0
     kd_radius: float = 0.2
     bound_mm: float = 0.04  # multilayer stop: mean surface distance
-    max_layers: int = 0  # BCPD layers amplify round-off into mm of interior nodes (docs/hex_template.md)
+    max_layers: int = 0  # BCPD layers amplify round-off into mm of interior nodes (docs/explanation/hex-mesh.md)
     project: bool = True  # final closest-point projection of the surface nodes
     min_scaled_jacobian: float = 0.3  # a registration layer is kept only if the block stays above this
 

@@ -457,7 +457,7 @@ class CohortData:
         """(file name, bytes) of a model's download: for a grid model exactly what ``spinecohort export``
         writes (``virtual_model`` + ``write_model``, the same materials); for a patient, its deck from
         ``personalized/``."""
-        from spinecohort.fe.export import materials_from_config
+        from spinecohort.fe.materials import materials_from_config
         from spinecohort.fe.models import virtual_model, write_model
 
         name = self.check_id(name)
@@ -548,7 +548,8 @@ class CohortData:
     def fitted_deck(self, targets: dict[str, float], res) -> bytes:
         """The .inp deck of a continuous fit, composed as ``spinecohort personalize --out`` composes it
         (``personalized_hex``, ``fe_model``, ``write_inp``, the same heading): the same bytes."""
-        from spinecohort.fe.export import fe_model, materials_from_config
+        from spinecohort.fe.export import fe_model
+        from spinecohort.fe.materials import materials_from_config
         from spinecohort.fe.writers import write_inp
         from spinecohort.personalize.cohort import personalized_hex
 
