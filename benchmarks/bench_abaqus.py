@@ -14,15 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from spinecohort.fe.abaqus import (
-    FEModel,
-    LinearElastic,
-    Section,
-    parse_template,
-    read_inp_nodes,
-    substitute_coordinates,
-    write_inp,
-)
+from spinecohort.fe.abaqus import FEModel, LinearElastic, Section
+from spinecohort.fe.inp_template import parse_template, read_inp_nodes, substitute_coordinates
+from spinecohort.fe.writers import write_inp
 from spinecohort.testing import hex_grid
 
 

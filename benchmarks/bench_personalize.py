@@ -19,7 +19,9 @@ import pandas as pd
 
 from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.measure.spinopelvic import measure
-from spinecohort.personalize import CORE_PARAMETERS, Settings, build_model, project_shapes
+from spinecohort.personalize.cohort import Settings, build_model
+from spinecohort.personalize.fit import project_shapes
+from spinecohort.personalize.parameters import CORE_PARAMETERS
 from spinecohort.ssm.model import SSM
 
 

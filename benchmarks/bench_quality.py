@@ -16,8 +16,17 @@ import numpy as np
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-from spinecohort.mesh import quality as q
 from spinecohort.mesh import repair as r
+from spinecohort.mesh.quality.certificate import certify_valid
+from spinecohort.mesh.quality.kernels import (
+    bernstein_bounds_nb,
+    full_metrics_batch_nb,
+    full_metrics_nb,
+    min_scaled_jacobian_nb,
+    morph_scaled_jacobian_nb,
+)
+from spinecohort.mesh.quality.table3 import hex_quality_metrics, model_quality, part_codes
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.vtk_mesh import hexahedra
 from spinecohort.testing import hex_grid_node_id, perturbed_cube_grid, unit_cube_grid
 
@@ -47,7 +56,7 @@ def bench_check(n):
     X, H = perturbed_cube_grid(n)
     E = len(H)
     print(f"\n== {n}^3 mesh: {E} hexes, {len(X)} nodes ==")
-    q.min_scaled_jacobian_nb(X[:8], H[:1] * 0)  # compile outside the timing
+    min_scaled_jacobian_nb(X[:8], H[:1] * 0)  # compile outside the timing
     mq = vtk_filter(X, H)
 
     def run_vtk():
@@ -56,8 +65,8 @@ def bench_check(n):
         return vtk_to_numpy(mq.GetOutput().GetCellData().GetArray("Quality"))
 
     t_vtk, sj_vtk = best_of(run_vtk)
-    t_nb, sj_nb = best_of(lambda: q.min_scaled_jacobian_nb(X, H))
-    t_np, sj_np = best_of(lambda: q.scaled_jacobian(X, H))
+    t_nb, sj_nb = best_of(lambda: min_scaled_jacobian_nb(X, H))
+    t_np, sj_np = best_of(lambda: scaled_jacobian(X, H))
     print(
         f"agreement: max|numba - vtk| = {np.abs(sj_nb - sj_vtk).max():.1e}, "
         f"max|numpy - vtk| = {np.abs(sj_np - sj_vtk).max():.1e}, invalid {int((sj_nb <= 0).sum())} "
@@ -72,12 +81,12 @@ def bench_check(n):
         f"numpy scaled_jacobian (chunks): {E / t_np / 1e6:6.2f} M elem/s  ({t_np * 1e3:7.1f} ms)  "
         f"ratio numpy/vtk = {t_vtk / t_np:.2f}x"
     )
-    t_full, _ = best_of(lambda: q.full_metrics_nb(X, H))
+    t_full, _ = best_of(lambda: full_metrics_nb(X, H))
     print(f"numba full_metrics_nb (7 metrics): {E / t_full / 1e6:6.2f} M elem/s  ({t_full * 1e3:7.1f} ms)")
     P = np.ascontiguousarray(X[H])
-    t_bern, _ = best_of(lambda: q.bernstein_bounds_nb(P))
+    t_bern, _ = best_of(lambda: bernstein_bounds_nb(P))
     print(f"numba bernstein_bounds_nb (27 coefficients): {E / t_bern / 1e6:6.2f} M elem/s")
-    t_cert, cert = best_of(lambda: q.certify_valid(X, H), repeats=1)
+    t_cert, cert = best_of(lambda: certify_valid(X, H), repeats=1)
     print(
         f"certify_valid (all elements, incl. subdivision): {E / t_cert / 1e6:6.2f} M elem/s, "
         f"{int((cert < 0).sum())} not certified"
@@ -86,22 +95,22 @@ def bench_check(n):
     rng = np.random.default_rng(2)
     batch = X + rng.normal(0, 0.01 / n, (56, *X.shape))
     part = np.array(["vertebra", "AF", "NP"])[rng.integers(0, 3, E)]
-    codes = q.part_codes(part)
-    q.model_quality(batch[:8], H, part, codes)
-    t_mq, _ = best_of(lambda: q.model_quality(batch, H, part, codes))
-    t_fm, _ = best_of(lambda: q.full_metrics_batch_nb(batch[:8], H))
+    codes = part_codes(part)
+    model_quality(batch[:8], H, part, codes)
+    t_mq, _ = best_of(lambda: model_quality(batch, H, part, codes))
+    t_fm, _ = best_of(lambda: full_metrics_batch_nb(batch[:8], H))
     ns_mq, ns_fm = t_mq / (56 * E) * 1e9, t_fm / (8 * E) * 1e9
     print(
         f"model_quality (check + Table 3, 56 models across vector lanes): {ns_mq:.0f} ns per hex; "
         f"full_metrics_batch_nb (per element, 7 metrics): {ns_fm:.0f} ns per hex; ratio {ns_fm / ns_mq:.1f}x"
     )
-    t_all, _ = best_of(lambda: q.hex_quality_metrics(X, H), repeats=1)
+    t_all, _ = best_of(lambda: hex_quality_metrics(X, H), repeats=1)
     print(f"hex_quality_metrics (full + certificate): {t_all:.2f} s per sample")
     rng = np.random.default_rng(1)
     B, n_modes = 4, 5
     modes = rng.normal(0, 0.03, (n_modes, len(X), 3))
     w = rng.uniform(-3, 3, (B, n_modes))
-    t_fused, _ = best_of(lambda: q.morph_scaled_jacobian_nb(X, modes, w, H), repeats=2)
+    t_fused, _ = best_of(lambda: morph_scaled_jacobian_nb(X, modes, w, H), repeats=2)
     print(
         f"numba fused morph ({n_modes} modes) + check, B={B}: {B * E / t_fused / 1e6:6.2f} M elem/s "
         f"({t_fused / B * 1e3:.1f} ms per sample)"
@@ -116,7 +125,7 @@ def bench_repair():
     y = X0[:, 1] + 0.02 * x**2
     R = 16.0
     ref = np.stack([(R + x) * np.cos(X0[:, 2] / R) - R, y, (R + x) * np.sin(X0[:, 2] / R)], 1)
-    print(f"\n== repair on a graded bent {n}^3 block ({len(H)} hexes, min sJ {q.scaled_jacobian(ref, H).min():.3f}) ==")
+    print(f"\n== repair on a graded bent {n}^3 block ({len(H)} hexes, min sJ {scaled_jacobian(ref, H).min():.3f}) ==")
 
     def push(node, towards, f):
         X = ref.copy()
@@ -149,7 +158,7 @@ def bench_repair():
             print(f"{name:38s} FAILED: {e}")
             continue
         dt = time.perf_counter() - t
-        cert_ok = bool(np.all(q.certify_valid(Y, H) == 1))
+        cert_ok = bool(np.all(certify_valid(Y, H) == 1))
         print(
             f"{name:38s} invalid {rep.invalid_before:3d} -> {rep.invalid_after}, certified {cert_ok}, "
             f"moved {rep.n_nodes_moved:4d}, max|dx| {rep.max_displacement_mm:.2f} mm, min sJ "

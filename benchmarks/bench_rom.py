@@ -49,8 +49,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(asctime)s %(message)s")
 
-    from spinecohort.fe.export import materials_from_config
-    from spinecohort.figures import validation_figure
+    from spinecohort.fe.materials import materials_from_config
+    from spinecohort.figures.rom import validation_figure
     from spinecohort.mesh.template import HexTemplate
     from spinecohort.rom.compare import all_effect, validate_from_config
     from spinecohort.rom.run import solve_model

@@ -17,11 +17,12 @@ import numpy as np
 import pandas as pd
 
 from spinecohort.cohort.synthetic import generate_cohort
-from spinecohort.fe.abaqus import write_inp
 from spinecohort.fe.export import fe_model
+from spinecohort.fe.writers import write_inp
 from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
 from spinecohort.mesh.morph import MorphParameters, morph_template
-from spinecohort.mesh.quality import min_scaled_jacobian_nb, scaled_jacobian
+from spinecohort.mesh.quality.kernels import min_scaled_jacobian_nb
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
 from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.procrustes import procrustes_align

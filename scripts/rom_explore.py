@@ -52,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="", help="comma-separated load cases (default: the config's)")
     args = ap.parse_intermixed_args(argv)
 
-    from spinecohort.fe.export import materials_from_config, read_deck_points
+    from spinecohort.fe.export import read_deck_points
+    from spinecohort.fe.materials import materials_from_config
     from spinecohort.layout import Layout
     from spinecohort.mesh.template import HexTemplate
     from spinecohort.rom.compare import orderings, validate_from_config

@@ -7,24 +7,10 @@ import shutil
 import numpy as np
 import pytest
 
-from spinecohort.fe.abaqus import (
-    FEModel,
-    InpTemplate,
-    LinearElastic,
-    MooneyRivlin,
-    Section,
-    UserMaterial,
-    format_id_list,
-    model_to_inp_text,
-    parse_template,
-    read_inp,
-    read_inp_nodes,
-    substitute_coordinates,
-    validate_model,
-    write_inp,
-    write_vtu,
-)
+from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, UserMaterial, validate_model
 from spinecohort.fe.calculix import CalculixError, check_input, find_ccx, parse_dat, run_ccx
+from spinecohort.fe.inp_template import InpTemplate, parse_template, read_inp, read_inp_nodes, substitute_coordinates
+from spinecohort.fe.writers import format_id_list, model_to_inp_text, write_inp, write_vtu
 from spinecohort.testing import hex_grid
 
 HAS_CCX = shutil.which("ccx") is not None
@@ -320,7 +306,7 @@ def test_data_check_replaces_the_fibre_law_by_its_ground_substance():
 def test_every_float_field_fits_ccx_20_characters():
     # ccx 2.20 reads 20 characters of a field: repr(2.4178372958533995e-05) has 22 and ccx stopped with
     # "*ERROR reading *GAP"; the writer falls back to 14 significant digits (relative error <= 5e-15)
-    from spinecohort.fe.abaqus import MAX_FIELD_CHARS, _fmt_float
+    from spinecohort.fe.writers import MAX_FIELD_CHARS, _fmt_float
 
     rng = np.random.default_rng(0)
     xs = np.concatenate([[2.4178372958533995e-05, -1.0 / 3.0, 1e-300, -123.45678901234567], rng.normal(size=1000)])

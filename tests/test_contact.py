@@ -11,7 +11,7 @@ from spinecohort.fe.models import hex_points_checked
 from spinecohort.measure.spinopelvic import measure
 from spinecohort.mesh.contact import disc_gaps, distraction_summary, level_offsets, resolve_contact
 from spinecohort.mesh.hex_ssm import contact_offsets, transfer_fields
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.store.shards import hex_landmarks, sample_points
 from spinecohort.store.zarr_store import grid_weights
 

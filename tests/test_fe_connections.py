@@ -12,7 +12,8 @@ import pytest
 
 from spinecohort.fe.connections import CONNECTOR_TABLE, posterior_wall, skin_pieces, spread_nodes, truss_pairs
 from spinecohort.fe.connectivity import ConnectivityError, check_connected, unreachable_report
-from spinecohort.fe.export import DEFAULT_MATERIALS, fe_model, write_deck
+from spinecohort.fe.export import fe_model, write_deck
+from spinecohort.fe.materials import DEFAULT_MATERIALS
 from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
 
 
@@ -153,9 +154,9 @@ def test_the_exported_deck_solves_under_a_pure_moment(template, tmp_path):
     # long for CI).  With the facet contacts a 25 N.mm first increment diverges after 21 iterations; 6.25 N.mm
     # converges in 4-6 (one increment: ~1 min).  Without the connectors this deck diverges (displacement
     # increments ~1e15 mm).
-    from spinecohort.fe.abaqus import format_id_list
     from spinecohort.fe.calculix import run_ccx
     from spinecohort.fe.facets import vertebra_frame
+    from spinecohort.fe.writers import format_id_list
 
     fe = fe_model(template)
     deck = write_deck(fe, tmp_path / "model.inp")
@@ -195,7 +196,7 @@ def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(te
     import re
 
     from spinecohort.fe.facets import vertebra_frame
-    from spinecohort.rom.deck import model_load_text
+    from spinecohort.fe.pure_moment import model_load_text
 
     fe = fe_model(template)
     n = len(fe.nodes)

@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from spinecohort.fe.abaqus import FEModel, NeoHooke, Orientation, Section, UserMaterial, model_to_inp_text
+from spinecohort.fe.abaqus import FEModel, NeoHooke, Orientation, Section, UserMaterial
 from spinecohort.fe.fibres import (
     BIN_RATIO,
     HEX8_NATURAL,
@@ -22,7 +22,8 @@ from spinecohort.fe.fibres import (
     fibre_table,
     trilinear_weights,
 )
-from spinecohort.mesh.quality import hex_volumes
+from spinecohort.fe.writers import model_to_inp_text
+from spinecohort.mesh.quality.verdict import hex_volumes
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed")
 
@@ -116,7 +117,8 @@ def test_one_hex_with_spring_fibres_stretches_as_with_ccx_fibre_law(tmp_path):
     # nearly incompressible ground substance (D1 0.005: J - 1 < 0.3 %), where the law's isochoric I4 is the total
     # one and its deviatoric projection is taken up by the pressure, so both models must stretch alike
     from spinecohort.fe.calculix import run_ccx
-    from spinecohort.fe.export import FEMaterials, add_fibres
+    from spinecohort.fe.export import add_fibres
+    from spinecohort.fe.materials import FEMaterials
 
     side, d1 = 4.0, 0.005
     corners = HEX8_NATURAL * side / 2

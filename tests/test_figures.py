@@ -14,7 +14,16 @@ import pytest
 import yaml
 from PIL import Image
 
-from spinecohort import figures as F
+from spinecohort.figures.cohort import parameter_histograms_figure, quality_summary_figure
+from spinecohort.figures.models import part_model_figure, personalized_gallery_figure
+from spinecohort.figures.render import (
+    HEX_PART_STYLE,
+    LIGAMENT_STYLE,
+    SURFACE_STYLE,
+    hex_boundary_faces,
+    ligament_group,
+    render_hex_model,
+)
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate
 
@@ -64,9 +73,9 @@ def model(test_run):
 def test_boundary_faces_of_hex_blocks_closed_form():
     # one hex: 6 faces; two hexes sharing a face: 2 * 6 - 2 = 10; an n x n x n block: 6 n^2 outer quads
     cube = np.array([[0, 1, 2, 3, 4, 5, 6, 7]])
-    assert len(F.hex_boundary_faces(cube)[0]) == 6
+    assert len(hex_boundary_faces(cube)[0]) == 6
     two = np.array([[0, 1, 2, 3, 4, 5, 6, 7], [4, 5, 6, 7, 8, 9, 10, 11]])
-    faces, owner = F.hex_boundary_faces(two)
+    faces, owner = hex_boundary_faces(two)
     assert len(faces) == 10 and np.bincount(owner).tolist() == [5, 5]
     n = 3
     idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)  # [k, j, i]
@@ -87,7 +96,7 @@ def test_boundary_faces_of_hex_blocks_closed_form():
             for i in range(n)
         ]
     )
-    faces, owner = F.hex_boundary_faces(hexes)
+    faces, owner = hex_boundary_faces(hexes)
     assert len(faces) == 6 * n * n  # 54; the central hex owns none
     assert 13 not in owner
 
@@ -108,23 +117,23 @@ def test_every_figure_is_a_nonblank_png_of_the_configured_size(test_run):
 
 def test_part_render_shows_every_tissue_and_ligament_colour(model, tmp_path):
     template, hex_ssm = model
-    renders = F.part_model_figure(template, hex_ssm.mean, tmp_path / "parts.png", size_px=(900, 600), dpi=100)
+    renders = part_model_figure(template, hex_ssm.mean, tmp_path / "parts.png", size_px=(900, 600), dpi=100)
     assert set(renders) == {"lateral", "section", "frontal", "detail"}
     every = np.concatenate([im.reshape(-1, 3) for im in renders.values()])[:, None, :]
-    for _tissue, (label, colour) in F.HEX_PART_STYLE.items():
+    for _tissue, (label, colour) in HEX_PART_STYLE.items():
         # the thin ones (0.7 mm CEP, shell ring) show in the section and the disc close-up
         assert _shaded_matches(every, colour) > 100, label
-    assert _shaded_matches(every, F.SURFACE_STYLE[1]) > 1000
-    groups = set(F.ligament_group(template))
-    assert groups == set(F.LIGAMENT_STYLE)  # all seven groups are in the template (ALL included)
+    assert _shaded_matches(every, SURFACE_STYLE[1]) > 1000
+    groups = set(ligament_group(template))
+    assert groups == set(LIGAMENT_STYLE)  # all seven groups are in the template (ALL included)
     for g in groups:
-        assert _exact_matches(every, F.LIGAMENT_STYLE[g][1]) > 10, g
+        assert _exact_matches(every, LIGAMENT_STYLE[g][1]) > 10, g
     # control: the same view without ligaments has (almost) none of their colours, so the counts above are
     # the lines and not shading that happens to match
-    bare = F.render_hex_model(template, hex_ssm.mean, "lateral", (300, 560), ligaments=False)
-    with_lines = F.render_hex_model(template, hex_ssm.mean, "lateral", (300, 560))
+    bare = render_hex_model(template, hex_ssm.mean, "lateral", (300, 560), ligaments=False)
+    with_lines = render_hex_model(template, hex_ssm.mean, "lateral", (300, 560))
     for g in ("SSL", "ISL", "ITL"):  # the groups seen from the side
-        c = F.LIGAMENT_STYLE[g][1]
+        c = LIGAMENT_STYLE[g][1]
         assert _exact_matches(bare, c) <= 2 < 10 <= _exact_matches(with_lines, c), g
 
 
@@ -140,14 +149,14 @@ def test_gallery_from_a_personalization_table(model, tmp_path):
         }
     )
     out = tmp_path / "gallery.png"
-    ids = F.personalized_gallery_figure(hex_ssm, template, table, out, size_px=(600, 400), dpi=100, n_models=2)
+    ids = personalized_gallery_figure(hex_ssm, template, table, out, size_px=(600, 400), dpi=100, n_models=2)
     assert ids == ["P07", "P02"]  # the first two "fit" rows, in the table's order
     img = _rgb(out)
     assert img.shape == (400, 600, 3) and img.mean(axis=2).std() > 15
     with pytest.raises(ValueError, match="no mode-weight columns"):
-        F.personalized_gallery_figure(hex_ssm, template, table[["ID", "method"]], out)
+        personalized_gallery_figure(hex_ssm, template, table[["ID", "method"]], out)
     with pytest.raises(ValueError, match="no row with method == 'fit'"):
-        F.personalized_gallery_figure(hex_ssm, template, table[table["method"] == "projection"], out)
+        personalized_gallery_figure(hex_ssm, template, table[table["method"] == "projection"], out)
 
 
 def test_histograms_report_the_share_above_each_threshold(tmp_path):
@@ -155,7 +164,7 @@ def test_histograms_report_the_share_above_each_threshold(tmp_path):
     virtual = pd.DataFrame({"PT": np.arange(40.0), "PI": np.linspace(40, 80, 40)})
     patients = pd.DataFrame({"PT": [18.0, 22.0, 30.0], "PI": [50.0, 60.0, 70.0]})
     out = tmp_path / "h.png"
-    shares = F.parameter_histograms_figure(
+    shares = parameter_histograms_figure(
         virtual, patients, {"PT_min_deg": 20.0}, ["PI", "PT"], out, size_px=(800, 400), dpi=100
     )
     row = shares.set_index("parameter").loc["PT"]
@@ -164,15 +173,15 @@ def test_histograms_report_the_share_above_each_threshold(tmp_path):
     # the threshold line is drawn in its colour
     assert _exact_matches(_rgb(out)[None], "#c0392b", tol=20) > 50
     with pytest.raises(ValueError, match=r"patients table has no column\(s\) \['SS'\]"):
-        F.parameter_histograms_figure(virtual.assign(SS=1.0), patients, {}, ["SS"], out)
+        parameter_histograms_figure(virtual.assign(SS=1.0), patients, {}, ["SS"], out)
     with pytest.raises(ValueError, match="unknown inclusion criteria"):
-        F.parameter_histograms_figure(virtual, patients, {"LL_max_deg": 5}, ["PT"], out)
+        parameter_histograms_figure(virtual, patients, {"LL_max_deg": 5}, ["PT"], out)
 
 
 def test_quality_summary_rejects_tables_without_the_columns(tmp_path):
     q = pd.DataFrame({"min_sj_before": [0.3], "min_sj_after": [0.3], "invalid_before": [0]})
     with pytest.raises(ValueError, match=r"lacks columns \['invalid_after', 'repaired'\]"):
-        F.quality_summary_figure(q, pd.DataFrame(), tmp_path / "q.png")
+        quality_summary_figure(q, pd.DataFrame(), tmp_path / "q.png")
 
 
 def test_report_builds_with_every_figure(test_run):

@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS
-from spinecohort.fe.abaqus import read_inp, write_inp
-from spinecohort.fe.export import ANNULUS_GROUND, DEFAULT_MATERIALS, fe_model
+from spinecohort.fe.export import fe_model
+from spinecohort.fe.inp_template import read_inp
+from spinecohort.fe.materials import ANNULUS_GROUND, DEFAULT_MATERIALS
+from spinecohort.fe.writers import write_inp
 from spinecohort.mesh.hex_ssm import inverted_over_grid, transfer_fields
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, HexTemplate, ogrid
 from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.procrustes import procrustes_align

@@ -16,17 +16,9 @@ import pandas as pd
 import pytest
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, MEASURED_SETS, Landmarks, disc_name
-from spinecohort.measure.spinopelvic import (
-    UNITS,
-    _least_eigenpairs_nb,
-    _plane_fits,
-    cobb_angle,
-    fit_planes,
-    fit_spheres,
-    measure,
-    measure_batch,
-    parameter_table_header,
-)
+from spinecohort.measure.fits import _least_eigenpairs_nb, fit_planes, fit_spheres, plane_fits
+from spinecohort.measure.formulas import cobb_angle
+from spinecohort.measure.spinopelvic import UNITS, measure, measure_batch, parameter_table_header
 
 NL = len(LEVELS)
 LI = {lv: i for i, lv in enumerate(LEVELS)}
@@ -375,9 +367,7 @@ def test_batched_plane_fits_are_exact_far_from_the_origin():
     far, near = square * [1, 1, h[0]] + [150.0, -80.0, 480.0], square * [1, 1, h[1]] + [-40.0, 20.0, 60.0]
     batch = np.repeat(np.concatenate([[[0.0, 0.0, 0.0]], far, near])[None], 2, axis=0)
     batch[1] += [1000.0, 2000.0, -3000.0]  # translation: the same planes
-    centre, normal, rms = _plane_fits(
-        batch, {"far": np.arange(1, 5), "near": np.arange(5, 9)}, 0, np.array([0, 0, 1.0])
-    )
+    centre, normal, rms = plane_fits(batch, {"far": np.arange(1, 5), "near": np.arange(5, 9)}, 0, np.array([0, 0, 1.0]))
     assert np.allclose(rms, h[None], rtol=1e-4, atol=1e-9)
     assert np.allclose(normal, [0, 0, 1], atol=1e-12)
     assert np.allclose(centre[:, 0], [150.0, -80.0, 480.0], atol=1e-9)  # relative to the origin vertex (row 0)

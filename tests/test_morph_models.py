@@ -7,7 +7,8 @@ from spinecohort.cohort.stl_io import read_stl
 from spinecohort.fe.models import hex_points_checked, parse_model_id, virtual_model, write_model
 from spinecohort.mesh.hex_ssm import transfer_fields
 from spinecohort.mesh.morph import MorphParameters, morph_template, ray_weights
-from spinecohort.mesh.quality import morph_scaled_jacobian_nb, scaled_jacobian
+from spinecohort.mesh.quality.kernels import morph_scaled_jacobian_nb
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.repair import RepairError
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
 from spinecohort.ssm.model import build_ssm

@@ -1,4 +1,4 @@
-"""Personalized models (spinecohort/personalize.py): fits to parameters, projections, FE decks, CLI."""
+"""Personalized models (spinecohort/personalize/): fits to parameters, projections, FE decks, CLI."""
 
 from pathlib import Path
 
@@ -7,19 +7,18 @@ import pandas as pd
 import pytest
 import yaml
 
-from spinecohort.fe.abaqus import read_inp_nodes
+from spinecohort.fe.inp_template import read_inp_nodes
 from spinecohort.layout import Layout
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.personalize import (
+from spinecohort.personalize.cohort import shape_distances
+from spinecohort.personalize.fit import PersonalizationModel, project_shapes
+from spinecohort.personalize.parameters import (
     CORE_PARAMETERS,
     ParameterFunction,
-    PersonalizationModel,
     complete_pelvic_targets,
     landmark_vertices,
     pose,
-    project_shapes,
-    shape_distances,
 )
 from spinecohort.ssm.procrustes import procrustes_align
 

@@ -216,8 +216,8 @@ def test_serve_release_url_draws_a_model_fetched_by_its_browser_session(server, 
     import subprocess
     import sys
 
-    from test_web_browser import CHROMEDRIVER, CHROMIUM, _free_port, _show, chrome, open_page
     from test_web import wait_for_server
+    from test_web_browser import CHROMEDRIVER, CHROMIUM, _free_port, _show, chrome, open_page
 
     if not (Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists()):
         pytest.fail("Chromium is missing: run scripts/install_system_deps.sh")

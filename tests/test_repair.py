@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
-from spinecohort.mesh import quality as q
 from spinecohort.mesh import repair as r
+from spinecohort.mesh.quality.certificate import certify_valid
+from spinecohort.mesh.quality.element import HEX_CORNER_UVW
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.testing import hex_grid_node_id, unit_cube_grid
 
 N = 10  # elements per side
@@ -28,7 +30,7 @@ def reference_mesh():
 
 REF, HEX = reference_mesh()
 BOUNDARY = r.boundary_nodes(HEX)
-SJ_REF = q.scaled_jacobian(REF, HEX)
+SJ_REF = scaled_jacobian(REF, HEX)
 TAU = 0.05
 
 
@@ -41,12 +43,12 @@ def patch_nodes(X, report):
 
 
 def check_repaired(X, Y, report, n_invalid):
-    sj = q.scaled_jacobian(Y, HEX)
+    sj = scaled_jacobian(Y, HEX)
     assert report.invalid_before == n_invalid
     assert report.invalid_after == 0
     assert sj.min() > TAU and report.min_scaled_jacobian_after == pytest.approx(sj.min())
-    assert np.all(q.certify_valid(Y, HEX) == 1)  # exact: det J > 0 inside every element
-    ok_before = q.scaled_jacobian(X, HEX) > TAU
+    assert np.all(certify_valid(Y, HEX) == 1)  # exact: det J > 0 inside every element
+    ok_before = scaled_jacobian(X, HEX) > TAU
     assert np.all(sj[ok_before] > TAU)  # no element that was fine got spoiled
     moved = np.flatnonzero(np.any(Y != X, axis=1))
     assert np.array_equal(moved, report.moved_nodes)
@@ -91,7 +93,7 @@ def test_localised_large_shear_mode():
     d = REF - c
     X = REF.copy()
     X[:, 0] += w * d[:, 2] / s * np.exp(-(d**2).sum(1) / (2 * s * s))
-    n_invalid = int((q.scaled_jacobian(X, HEX) <= 0).sum())
+    n_invalid = int((scaled_jacobian(X, HEX) <= 0).sum())
     Y, rep = r.untangle(X, HEX, REF)
     check_repaired(X, Y, rep, n_invalid=n_invalid)
     assert n_invalid >= 10
@@ -117,7 +119,7 @@ def test_valid_mesh_is_returned_unchanged():
 
 def test_unrepairable_mesh_raises_naming_the_failure():
     # a single hex has only surface nodes: with sliding excluded from the plan nothing can move
-    P = q.HEX_CORNER_UVW.copy()
+    P = HEX_CORNER_UVW.copy()
     X = P.copy()
     X[6] = [-0.5, -0.5, -0.5]
     with pytest.raises(r.RepairError, match="untangling failed"):
@@ -138,8 +140,8 @@ def test_invalid_reference_is_rejected():
 
 def test_energy_gradient_matches_finite_differences():
     rng = np.random.default_rng(1)
-    Xe = q.HEX_CORNER_UVW + rng.normal(0, 0.4, (3, 8, 3))  # some corners inverted
-    Winv = np.linalg.inv(np.einsum("knj,enx->ekxj", r._G, 1.3 * np.broadcast_to(q.HEX_CORNER_UVW, (3, 8, 3))))
+    Xe = HEX_CORNER_UVW + rng.normal(0, 0.4, (3, 8, 3))  # some corners inverted
+    Winv = np.linalg.inv(np.einsum("knj,enx->ekxj", r._G, 1.3 * np.broadcast_to(HEX_CORNER_UVW, (3, 8, 3))))
     F, grad, _ = r.winslow_energy(Xe, Winv, eps=0.3)
     num = np.zeros_like(Xe)
     for idx in np.ndindex(Xe.shape):
@@ -151,8 +153,8 @@ def test_energy_gradient_matches_finite_differences():
 
 def test_energy_of_target_shape_is_its_minimum_value():
     # T = I at all 9 points: |I|^2 / 3 + lam (1 + 1) / 2 = 1 + 1 per point with eps -> 0
-    Winv = np.linalg.inv(np.einsum("knj,enx->ekxj", r._G, q.HEX_CORNER_UVW[None]))
-    F, grad, d = r.winslow_energy(q.HEX_CORNER_UVW[None], Winv, eps=1e-8)
+    Winv = np.linalg.inv(np.einsum("knj,enx->ekxj", r._G, HEX_CORNER_UVW[None]))
+    F, grad, d = r.winslow_energy(HEX_CORNER_UVW[None], Winv, eps=1e-8)
     assert F == pytest.approx(18.0, rel=1e-12) and np.abs(grad).max() < 1e-10 and np.allclose(d, 1.0)
 
 

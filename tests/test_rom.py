@@ -16,12 +16,14 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, model_to_inp_text, write_inp
+from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.connections import arch_nodes
-from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials, materials_from_config, read_deck_points
+from spinecohort.fe.export import read_deck_points
 from spinecohort.fe.facets import FacetContact, facet_gaps, vertebra_frame
+from spinecohort.fe.materials import DEFAULT_MATERIALS, FEMaterials, materials_from_config
 from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
+from spinecohort.fe.writers import model_to_inp_text, write_inp
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import accepted_interval, orderings, validate, validation_markdown
 from spinecohort.rom.deck import rom_deck_text
@@ -456,7 +458,7 @@ def test_rom_submodel_of_a_functional_unit(template):
 
 
 def test_ligament_law_is_the_bilinear_law_with_rounded_corners():
-    from spinecohort.fe.export import DEFAULT_LIGAMENTS, ligament_force_n, ligament_table
+    from spinecohort.fe.materials import DEFAULT_LIGAMENTS, ligament_force_n, ligament_table
 
     law = DEFAULT_LIGAMENTS["CL"]  # E1 7.5, E2 32.9 MPa, transition 25 %, 30 mm^2
     a1, a2 = law.e1_mpa * law.area_mm2, law.e2_mpa * law.area_mm2
@@ -567,8 +569,8 @@ def test_gap_element_closes_at_its_clearance(tmp_path):
     # node 2 pulled towards the fixed node 1 by 100 N against a 10 N/mm spring to a fixed node 3; the gap
     # (clearance 0.5 mm, 1000 N/mm, direction 1 -> 2) closes after 0.5 mm: 100 = 10 u + 1000 (u - 0.5)
     # -> u = 600 / 1010 = 0.59406 mm (without the gap: 10 mm)
-    from spinecohort.fe.abaqus import model_to_inp_text
     from spinecohort.fe.calculix import run_ccx
+    from spinecohort.fe.writers import model_to_inp_text
 
     fe = FEModel(
         np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]),
@@ -594,9 +596,9 @@ def test_contact_strut_closes_at_its_clearance_in_any_direction(tmp_path):
     # 30 deg off the x axis, in series with the same 10 N/mm spring and 100 N as the gap test above: it closes
     # after 0.5 mm of shortening, 100 = 10 u + 1000 (u - 0.5) -> u = 600 / 1010 = 0.59406 mm along the strut
     # (the rounded corner, 0.05 mm wide, shifts the linear part by 0.025 mm: u = 625 / 1010 = 0.61881 mm)
-    from spinecohort.fe.abaqus import model_to_inp_text
     from spinecohort.fe.calculix import run_ccx
     from spinecohort.fe.facets import strut_table
+    from spinecohort.fe.writers import model_to_inp_text
 
     d = np.array([np.cos(np.radians(30.0)), np.sin(np.radians(30.0)), 0.0])
     fe = FEModel(
@@ -1086,7 +1088,7 @@ def test_mode_table_keeps_a_model_short_of_the_full_load_and_runs_each_mode_thro
 
 
 def test_sensitivity_and_mode_figures_are_written(tmp_path):
-    from spinecohort.figures import rom_modes_figure, rom_sensitivity_figure
+    from spinecohort.figures.rom import rom_modes_figure, rom_sensitivity_figure
 
     sens = pd.DataFrame(
         {
@@ -1126,7 +1128,8 @@ def test_k1_gradient_gives_each_annulus_ring_its_set_and_material(tmp_path, temp
 
     import yaml
 
-    from spinecohort.fe.export import annulus_ring_k1, annulus_rings, disc_hexes, fe_model
+    from spinecohort.fe.export import disc_hexes, fe_model
+    from spinecohort.fe.materials import annulus_ring_k1, annulus_rings
 
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     fe = copy.deepcopy(cfg["fe"])
@@ -1236,7 +1239,7 @@ def test_the_guide_equations_keep_the_rotation_vector_on_the_load_axis():
     # closed form: a moment in the y-z plane at 39 deg to y, m = 7500 (0, cos 39, -sin 39) N.mm, is loaded on
     # theta_y; theta_x follows with coefficient 0 (held), theta_z = -tan 39 theta_y; the generalised force on
     # theta_y does the moment's work, |m|^2 / m_y = 7500 / cos 39
-    from spinecohort.rom.deck import guide_equations
+    from spinecohort.fe.pure_moment import guide_equations
 
     a = np.radians(39.0)
     m = 7500.0 * np.array([0.0, np.cos(a), -np.sin(a)])

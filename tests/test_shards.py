@@ -9,7 +9,7 @@ from spinecohort.cohort.landmarks import Landmarks
 from spinecohort.measure.spinopelvic import measure
 from spinecohort.measure.tables import parse_range, query_models, tri_vs_hex_summary, virtual_cohort_table
 from spinecohort.mesh.hex_ssm import HexSSM, transfer_fields
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.repair import boundary_nodes
 from spinecohort.store.shards import (
     _param_diff,
@@ -274,7 +274,7 @@ def test_one_pass_check_decisions_equal_the_formula_kernel(shard1, template, hex
     """The one-pass check (``model_quality`` on the float64 batch) decides as the former check, the fused
     morph kernel on the SSM formula: the same inverted-hex counts and the same minimum scaled Jacobians
     (up to the round-off of BLAS against numba summing the modes)."""
-    from spinecohort.mesh.quality import morph_scaled_jacobian_nb
+    from spinecohort.mesh.quality.kernels import morph_scaled_jacobian_nb
 
     path, ids, w, quality = shard1
     n = template.n_hex_nodes
@@ -290,7 +290,7 @@ def test_one_pass_check_decisions_equal_the_formula_kernel(shard1, template, hex
 def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, template, ssm, hex_ssm):
     """The quality table's Table 3 columns of a model equal ``table3_summary`` of that model alone (the
     pooled-metrics implementation used for the template's own Table 3)."""
-    from spinecohort.mesh.quality import hex_quality_metrics, table3_summary
+    from spinecohort.mesh.quality.table3 import hex_quality_metrics, table3_summary
 
     path, ids, w, quality = shard1
     tissue = template.part_of_hex()

@@ -346,8 +346,8 @@ def test_xlsx_of_the_table_reads_back_equal(data):
 
 
 def test_a_live_shape_deck_is_the_checked_shape_of_its_weights(data, tmp_path):
-    from spinecohort.fe.abaqus import read_inp_nodes
-    from spinecohort.personalize import personalized_hex
+    from spinecohort.fe.inp_template import read_inp_nodes
+    from spinecohort.personalize.cohort import personalized_hex
 
     w = np.array([1.5, -0.5, 0.0])
     path = tmp_path / "live.inp"

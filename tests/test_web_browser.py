@@ -174,7 +174,7 @@ def _table(test_run) -> pd.DataFrame:
 def test_browser_filter_select_slide_download(browser, server, test_run):
     from selenium.webdriver.common.keys import Keys
 
-    from spinecohort.fe.abaqus import read_inp_nodes
+    from spinecohort.fe.inp_template import read_inp_nodes
     from spinecohort.store.zarr_store import read_model
 
     drv = browser
@@ -280,8 +280,8 @@ def test_page_sizes_show_all_their_rows(browser, test_run):
 
 
 def test_downloads_and_panel_belong_to_the_shape_on_screen(browser, test_run):
-    from spinecohort.fe.abaqus import read_inp_nodes
-    from spinecohort.personalize import personalized_hex
+    from spinecohort.fe.inp_template import read_inp_nodes
+    from spinecohort.personalize.cohort import personalized_hex
     from spinecohort.web.data import open_data
 
     drv = browser

@@ -115,7 +115,7 @@ def _export(args: argparse.Namespace) -> int:
             args.model_id, SSM.load(src["ssm"]), HexSSM.load(src["hex_ssm"]), template, grid["n_modes"], grid["levels"]
         )
     out = args.out or Path(f"model_{vm.model_id:05d}.{args.format}")
-    from spinecohort.fe.export import materials_from_config
+    from spinecohort.fe.materials import materials_from_config
 
     write_model(
         vm,
@@ -225,7 +225,8 @@ def _query(args: argparse.Namespace) -> int:
 def _personalize(args: argparse.Namespace) -> int:
     from spinecohort.cohort.landmarks import Landmarks
     from spinecohort.measure.spinopelvic import UNITS
-    from spinecohort.personalize import Settings, build_model, complete_pelvic_targets, personalized_hex
+    from spinecohort.personalize.cohort import Settings, build_model, personalized_hex
+    from spinecohort.personalize.parameters import complete_pelvic_targets
     from spinecohort.ssm.model import SSM
 
     filters = args.filters
@@ -263,8 +264,9 @@ def _personalize(args: argparse.Namespace) -> int:
         t = targets.get(p, float("nan"))
         print(f"{p:<12}{t:>10.3f}{res.achieved[p]:>10.3f}{res.achieved[p] - t:>9.3f}  {UNITS.get(p, '')}")
     if args.out:
-        from spinecohort.fe.abaqus import write_vtu
-        from spinecohort.fe.export import fe_model, materials_from_config, write_deck
+        from spinecohort.fe.export import fe_model, write_deck
+        from spinecohort.fe.materials import materials_from_config
+        from spinecohort.fe.writers import write_vtu
         from spinecohort.mesh.hex_ssm import HexSSM
         from spinecohort.mesh.template import HexTemplate
 
@@ -389,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
         "--load",
         choices=["flexion", "extension", "lateral_left", "lateral_right", "axial_left", "axial_right"],
         help="(inp) add a pure-moment step: pelvis fixed, the moment on --top through a rigid body; solve the "
-        "deck with `ccx -i <name without .inp>` (docs/abaqus.md)",
+        "deck with `ccx -i <name without .inp>` (docs/reference/deck.md)",
     )
     e.add_argument("--moment-nm", type=float, default=7.5, help="pure moment of --load in N.m (default 7.5)")
     e.add_argument("--top", default="T1", help="the loaded vertebra of --load (T1 ... L5, default T1)")

@@ -2,8 +2,8 @@
 import dataclasses
 
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.abaqus import write_vtu
 from spinecohort.fe.export import fe_model
+from spinecohort.fe.writers import write_vtu
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
 from spinecohort.ssm.model import SSM

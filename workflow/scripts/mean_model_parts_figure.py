@@ -1,5 +1,5 @@
 # Adapter: the hex mean model (morphed template) coloured by tissue, with ligaments by group.
-from spinecohort.figures import part_model_figure
+from spinecohort.figures.models import part_model_figure
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate

@@ -1,7 +1,7 @@
 # Adapter: render the first modes at -3, 0, +3 SD.
 import numpy as np
 
-from spinecohort.figures import mode_variation_figure
+from spinecohort.figures.ssm import mode_variation_figure
 from spinecohort.logs import to_file
 from spinecohort.ssm.model import SSM
 

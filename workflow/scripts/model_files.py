@@ -1,6 +1,6 @@
 # Adapter: materialize one virtual model by target file: results/models/model_NNNNN.{inp,stl,vtu}.
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.export import materials_from_config
+from spinecohort.fe.materials import materials_from_config
 from spinecohort.fe.models import virtual_model, write_model
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM

@@ -2,11 +2,11 @@
 import numpy as np
 
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.abaqus import write_vtu
 from spinecohort.fe.export import fe_model
+from spinecohort.fe.writers import write_vtu
 from spinecohort.logs import Progress, to_file
 from spinecohort.mesh.morph import MorphParameters, morph_template
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
 

@@ -1,7 +1,7 @@
 # Adapter: histograms of the virtual cohort's parameters with the patients and the inclusion thresholds.
 import pandas as pd
 
-from spinecohort.figures import parameter_histograms_figure
+from spinecohort.figures.cohort import parameter_histograms_figure
 from spinecohort.logs import to_file
 
 with to_file(snakemake.log[0]) as log:

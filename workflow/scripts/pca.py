@@ -2,7 +2,7 @@
 import numpy as np
 
 from spinecohort.atomic import atomic_write
-from spinecohort.figures import compactness_plot
+from spinecohort.figures.ssm import compactness_plot
 from spinecohort.logs import to_file
 from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.quality import compactness_table

@@ -8,11 +8,13 @@ import pandas as pd
 
 from spinecohort.atomic import atomic_write
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.export import fe_model, materials_from_config, write_deck
+from spinecohort.fe.export import fe_model, write_deck
+from spinecohort.fe.materials import materials_from_config
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.personalize import Settings, personalize_cohort, personalized_hex, report_markdown
+from spinecohort.personalize.cohort import Settings, personalize_cohort, personalized_hex
+from spinecohort.personalize.report import report_markdown
 from spinecohort.ssm.model import SSM
 
 with to_file(snakemake.log[0]) as log:

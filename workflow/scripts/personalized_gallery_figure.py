@@ -1,7 +1,7 @@
 # Adapter: the first personalized hex models side by side (the seed's Figure 9).
 import pandas as pd
 
-from spinecohort.figures import personalized_gallery_figure
+from spinecohort.figures.models import personalized_gallery_figure
 from spinecohort.logs import to_file
 from spinecohort.mesh.hex_ssm import HexSSM
 from spinecohort.mesh.template import HexTemplate

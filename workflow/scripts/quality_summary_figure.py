@@ -1,7 +1,7 @@
 # Adapter: mesh-quality summary of the virtual cohort (shard quality tables) and Table 3 of the mean model.
 import pandas as pd
 
-from spinecohort.figures import quality_summary_figure
+from spinecohort.figures.cohort import quality_summary_figure
 from spinecohort.logs import to_file
 
 with to_file(snakemake.log[0]) as log:

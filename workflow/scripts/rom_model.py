@@ -1,7 +1,8 @@
 # Adapter: the range of motion of one model (its exported .inp) for every configured extraction and load case.
 
 from spinecohort.fe.calculix import find_ccx
-from spinecohort.fe.export import materials_from_config, read_deck_points
+from spinecohort.fe.export import read_deck_points
+from spinecohort.fe.materials import materials_from_config
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.run import solve_model

@@ -1,7 +1,7 @@
 # Adapter: the ROM tables of the mean and of each shape mode at its extremes -> modes.csv + figure.
 import pandas as pd
 
-from spinecohort.figures import rom_modes_figure
+from spinecohort.figures.rom import rom_modes_figure
 from spinecohort.logs import to_file
 from spinecohort.rom.modes import gather, summary
 

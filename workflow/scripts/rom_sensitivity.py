@@ -3,7 +3,7 @@ import pandas as pd
 
 from spinecohort.fe.calculix import find_ccx
 from spinecohort.fe.export import read_deck_points
-from spinecohort.figures import rom_sensitivity_figure
+from spinecohort.figures.rom import rom_sensitivity_figure
 from spinecohort.layout import Layout
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate

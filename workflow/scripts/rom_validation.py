@@ -2,7 +2,7 @@
 # the physiological orderings of its lumbar segments and the ALL effect.
 import pandas as pd
 
-from spinecohort.figures import validation_figure
+from spinecohort.figures.rom import validation_figure
 from spinecohort.logs import to_file
 from spinecohort.rom.compare import all_effect, orderings, validate_from_config, validation_markdown
 

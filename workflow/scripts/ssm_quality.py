@@ -1,7 +1,7 @@
 # Adapter: generalization and specificity of the SSM, table and plot.
 import numpy as np
 
-from spinecohort.figures import quality_plot
+from spinecohort.figures.ssm import quality_plot
 from spinecohort.logs import to_file
 from spinecohort.ssm.model import SSM
 from spinecohort.ssm.quality import generalization, specificity

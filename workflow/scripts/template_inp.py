@@ -1,7 +1,8 @@
 # Adapter: the Abaqus/CalculiX deck of the morphed mean, "Mean_Model (Template).inp".
 import numpy as np
 
-from spinecohort.fe.export import fe_model, materials_from_config, write_deck
+from spinecohort.fe.export import fe_model, write_deck
+from spinecohort.fe.materials import materials_from_config
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import HexTemplate
 

@@ -3,7 +3,7 @@ import numpy as np
 import pandas as pd
 
 from spinecohort.logs import to_file
-from spinecohort.mesh.quality import hex_quality_metrics, table3_summary
+from spinecohort.mesh.quality.table3 import hex_quality_metrics, table3_summary
 from spinecohort.mesh.template import HexTemplate
 
 with to_file(snakemake.log[0]) as log:

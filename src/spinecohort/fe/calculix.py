@@ -8,10 +8,10 @@ its log: any `*ERROR` line, or any `*WARNING` not matched by the caller's allow-
 `check_input` runs the deck with a `*NO ANALYSIS` step.  Verified on ccx 2.20: it still assembles the
 element stiffness, so a nonpositive Jacobian (inverted or collapsed hex) is an `*ERROR in e_c3d`.  ccx
 exits with code 201 after a `*NO ANALYSIS` step even when the deck is fine, so only the log decides.
-What it cannot catch (see docs/abaqus.md): anything that only fails during solution -- a singular or
-underconstrained system, non-convergence under NLGEOM, a moment on a REF NODE's rotational DOF that
-ccx silently ignores, ITERATIVE CHOLESKY's wrong answers, SPRINGA tables linearised in linear steps,
-and memory blow-up from sparse node ids.
+What it cannot catch (see docs/explanation/fe-model.md, "ccx 2.20 traps met here"): anything that only fails during
+solution -- a singular or underconstrained system, non-convergence under NLGEOM, a moment on a REF NODE's rotational
+DOF that ccx silently ignores, ITERATIVE CHOLESKY's wrong answers, SPRINGA tables linearised in linear steps, and
+memory blow-up from sparse node ids.
 """
 
 from __future__ import annotations

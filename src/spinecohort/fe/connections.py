@@ -14,7 +14,7 @@ A node tied to >= 3 non-coplanar targets is fixed to them; three non-collinear s
 The same truss joins the ROM sub-model's arch anchors to the body (`spinecohort.rom.submodel`), so what the
 ROM analysis validates is what the exported deck carries.  Springs, not *TIE/*COUPLING/*RIGID BODY: SPRINGA
 with a *SPRING, NONLINEAR table is read the same by Abaqus and ccx 2.20, while seven *RIGID BODY arches
-stalled ccx's Newton iterations (docs/rom.md) and *TIE needs surfaces.  Units: mm, N.
+stalled ccx's Newton iterations (docs/explanation/fe-model.md) and *TIE needs surfaces.  Units: mm, N.
 """
 
 from __future__ import annotations

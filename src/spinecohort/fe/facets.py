@@ -14,11 +14,11 @@ the superior articular process (SAP) tip of the lower one) gets
 
 Why a strut along the contact direction: a spring acts along the line between its nodes as they move, so
 the contact turns with the joint and a rigid turn of the whole joint neither opens nor closes it.  The two
-earlier forms failed that: a gap between the two tips, 12 mm apart, closed under a rigid turn (the lumbar
-model 4x stiffer in extension than the same segment alone), and a GAPUNI between coincident nodes keeps its
-direction fixed in space, wrong wherever the chain below has turned the joint (T11 turned 32 deg in the lumbar
-model's flexion; T10-T11's extension came out 1.90 deg there against 2.53 alone, docs/rom.md).  ``strut_length_mm``
-None still writes the coincident GAPUNI.  The new nodes hang on their vertebra by the same stiff spring
+alternatives fail that: a gap between the two tips, 12 mm apart, closes under a rigid turn (the lumbar model
+4x stiffer in extension than the same segment alone), and a GAPUNI between coincident nodes keeps its
+direction fixed in space, wrong wherever the chain below has turned the joint (T11 turns 32 deg in the lumbar
+model's flexion; T10-T11's extension comes out 1.90 deg there against 2.53 alone; docs/explanation/fe-model.md).
+``strut_length_mm`` None writes the coincident GAPUNI.  The new nodes hang on their vertebra by the same stiff spring
 truss as the arch (`spinecohort.fe.connections`).  A contact transmits force only when closed, so it never
 makes a deck one body (`spinecohort.fe.connectivity`).
 """
@@ -46,7 +46,7 @@ class FacetContact:
     negative when it faces laterally.  Normal = sin(t) (cos(f) posterior + sin(f) medial) + cos(t) cranial in
     the upper vertebra's anatomical frame.  Both angles are interpolated linearly between the anchor levels
     given (the upper vertebra of a segment).  The defaults are config/config.yaml's calibrated values (frontal
-    angles inside Masharawi et al. 2004's ranges, docs/rom.md).  clearance_mm: the joint's initial gap;
+    angles inside Masharawi et al. 2004's ranges, docs/explanation/fe-model.md).  clearance_mm: the joint's initial gap;
     stiffness_n_per_mm: the closed joint; tip_clearance_mm (None = no extension stop) and
     tip_stiffness_n_per_mm: the IAP tip's gap to the lamina below and its stiffness when closed."""
 
@@ -65,7 +65,7 @@ class FacetContact:
     tip_stiffness_n_per_mm: float = 200.0
     #: the contact element: a compression-only SPRINGA strut of this length (mm) along the contact direction,
     #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose
-    #: direction stays fixed in space while the chain below turns the joint (docs/rom.md)
+    #: direction stays fixed in space while the chain below turns the joint (docs/explanation/fe-model.md)
     strut_length_mm: float | None = 20.0
     #: width (mm of shortening past the clearance) over which a strut's stiffness rises from 0 to its closed
     #: value (`strut_table`'s rounded corner)

@@ -1,6 +1,6 @@
 """Annulus collagen fibres as tension-only springs embedded in the annulus hexes (the default of every deck).
 
-Why (docs/rom.md "Annulus fibres as embedded springs"): ccx 2.20's built-in fibre law ``umat_elastic_fiber`` tests
+Why (docs/explanation/fe-model.md): ccx 2.20's built-in fibre law ``umat_elastic_fiber`` tests
 ``xk2 * v4br**2 > 227`` before it assigns ``xk2``, so it aborts runs at random fibre states ("fiber extension is too
 large", exit 201, not an increment cutback): with the tied C3D20R nucleus, three thoracic unit cases stopped at
 66.5-96.5 % of the load in every retry.  Cable or spring fibres are the classic alternative (Shirazi-Adl et al. 1986;
@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spinecohort.mesh.quality import HEX_CORNER_UVW, hex_volumes
+from spinecohort.mesh.quality.element import HEX_CORNER_UVW
+from spinecohort.mesh.quality.verdict import hex_volumes
 
 #: natural coordinates (-1..1) of the 8 corners of a C3D8 hex, Abaqus/ccx node order (quality's 0..1 corners)
 HEX8_NATURAL = 2.0 * HEX_CORNER_UVW - 1.0

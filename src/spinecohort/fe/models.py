@@ -14,7 +14,7 @@ from spinecohort.cohort.landmarks import DISCS
 from spinecohort.fe.export import fe_model
 from spinecohort.mesh.contact import resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.repair import RepairError, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
@@ -103,12 +103,12 @@ def write_model(
 ) -> Path:
     """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model).
 
-    materials: `spinecohort.fe.export.FEMaterials` (default: config/config.yaml's ``fe`` values).
-    load: an ``inp`` with a pure-moment step (`spinecohort.rom.deck.LOAD_CASES`: pelvis fixed, `moment_nmm`
+    materials: `spinecohort.fe.materials.FEMaterials` (default: config/config.yaml's ``fe`` values).
+    load: an ``inp`` with a pure-moment step (`spinecohort.fe.pure_moment.LOAD_CASES`: pelvis fixed, `moment_nmm`
     N.mm on vertebra `top`), ready for ``ccx -i <job>``; None: the model data alone."""
     from spinecohort.cohort.stl_io import write_stl
-    from spinecohort.fe.abaqus import write_vtu
     from spinecohort.fe.export import check_deck, write_deck
+    from spinecohort.fe.writers import write_vtu
 
     if load is not None and fmt != "inp":
         raise ValueError(f"--load needs --format inp, not {fmt}")
@@ -122,7 +122,7 @@ def write_model(
         if load is None:
             write_deck(fe, out, provenance=heading)
         else:
-            from spinecohort.rom.deck import model_load_text
+            from spinecohort.fe.pure_moment import model_load_text
 
             check_deck(fe, str(out))
             out.write_text(model_load_text(fe, template, load, top, moment_nmm))

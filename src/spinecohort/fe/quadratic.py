@@ -1,6 +1,6 @@
 """Quadratic (20-node) hexes inside a linear hex mesh, kept conforming by midside-node ties.
 
-Why (docs/moment_check.md): ccx 2.20's C3D8R discs do not keep moment equilibrium once the hexes are distorted
+Why (docs/explanation/fe-model.md): ccx 2.20's C3D8R discs do not keep moment equilibrium once the hexes are distorted
 and the nucleus is nearly incompressible (the S1 plate of the T10-S1 model carries 87 % of 7.5 N.m), and a
 fully integrated C3D8 nucleus locks.  C3D20R needs no hourglass control and does not lock, so the disc soft
 tissue can be quadratic while bone and cartilage endplates stay C3D8.

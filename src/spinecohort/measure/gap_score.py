@@ -1,9 +1,9 @@
 """Global Alignment and Proportion (GAP) score, Yilgor et al., JBJS Am 2017;99:1661.
 
 Pure vectorised functions over numpy arrays (angles in degrees, LDI in percent, age in years).  The thresholds
-follow the open implementations collected in /work/shared/reference/spinopelvic.md §4; continuous values are
-binned with the half-open bins of §4.3, which equal the published 0.1-degree table on its grid and close the
-gaps the table leaves (e.g. RPV in (-7.1, -7)):
+follow the score's open implementations (docs/explanation/measurement.md, "GAP"); continuous values are binned
+with the half-open bins below, which equal the published 0.1-degree table on its grid and close the gaps the
+table leaves (e.g. RPV in (-7.1, -7)):
 
     RPV: x < -15 -> 3;  -15 <= x < -7 -> 2;  -7 <= x <= 5 -> 0;  x > 5 -> 1
     RLL: x < -25 -> 3;  -25 <= x < -14 -> 2; -14 <= x <= 11 -> 0; x > 11 -> 3
@@ -12,7 +12,7 @@ gaps the table leaves (e.g. RPV in (-7.1, -7)):
     Age: < 60 -> 0;  >= 60 -> 1
     Total: 0-2 proportioned (P), 3-6 moderately (MD), >= 7 severely disproportioned (SD)
 
-LDI points 2/1/0/3 are the majority reading of the open implementations (the least certain item, §9.1).
+LDI points 2/1/0/3 are the majority reading of the open implementations (the least certain item).
 A NaN input gives NaN points, so a missing measurement is never silently scored as aligned.
 """
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Minimum L1-S1 lordosis (deg) for which the LDI ratio is reported; below it LDI is NaN (§4.3).
+#: Minimum L1-S1 lordosis (deg) for which the LDI ratio is reported; below it LDI is NaN.
 LDI_MIN_LL_DEG = 1.0
 
 CATEGORIES = ("P", "MD", "SD")

@@ -1,25 +1,17 @@
 """Spinopelvic parameters of a batch of spine models, measured on corresponding landmark vertices.
 
-Follows /work/shared/reference/spinopelvic.md (§7 step by step); docs/measurement.md lists every choice.
-Millimetres and degrees throughout.
+docs/explanation/measurement.md states every definition and choice.  Millimetres and degrees throughout.
 
 Pipeline per batch (all array operations over the B models; only the 17 levels / 17 discs are looped):
 
-1. Endplate planes: total-least-squares fit of every endplate patch: the raw moments of all 35 patches of all
-   models summed in one numba pass over the batch (each patch about its own first vertex: out-of-plane RMS
-   exact to ~1e-9 mm), then the smallest eigenpair of every 3x3 covariance (one numba pass of Jacobi
-   rotations); normals oriented cranially
-   (n.V > 0); the vertex mean is the endplate centre because the patches are sampled centrally symmetric.
-2. Femoral heads: algebraic sphere fit (batched normal equations on mean-centred points, moments in one pass).
-3. Patient frame (§1.1/§7.3): V = the explicit vertical, Lh = horizontal part of cR - cL, A = V x Lh.  If the
-   pubic symphysis lies posterior to the S1 centre, A and Lh are flipped (left/right labels swapped), which makes
-   every output invariant to axial rotation, translation and label swaps.
-4. Signed in-plane angles ``sag(v) = atan2(v.A, v.V)`` and ``cor(v) = atan2(v.Lh, v.V)``, so the identities
-   PI = PT + SS, TPA = PT + T1SPI and GT = PT + C7VT hold for negative terms too.
-
-The batched plane/sphere fits and rim extremes are written here (small numba loops) because scipy/pyvista fit
-one point set at a time; a Python loop over 16,807 models x 35 patches would dominate the run time, and the
-numpy form (a gathered copy of every landmark vertex, a matmul per patch) cost 2.5x the time (docs/store.md).
+1. Endplate planes: total-least-squares fit of every endplate patch (`spinecohort.measure.fits`), normals
+   oriented cranially (n.V > 0); the vertex mean is the endplate centre because the patches are sampled
+   centrally symmetric.
+2. Femoral heads: algebraic sphere fit (`spinecohort.measure.fits`).
+3. Patient frame and the parameters' formulas (`spinecohort.measure.formulas`).
+4. The rim extremes (disc heights, the S1 posterosuperior corner) and the landmark vertices used one by one,
+   gathered once per batch (numba: a gathered float64 copy of every landmark vertex would cost more than the
+   measurement).
 """
 
 from __future__ import annotations
@@ -32,6 +24,24 @@ import numpy as np
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks, disc_name
 from spinecohort.measure import gap_score as _gap
+from spinecohort.measure.fits import fit_spheres, plane_fits
+from spinecohort.measure.formulas import (
+    cobb_angle,
+    cor_deg,
+    disc_heights_mm,
+    global_tilt_deg,
+    kyphosis_deg,
+    lordosis_deg,
+    patient_frame,
+    pelvic_incidence_deg,
+    pelvic_tilt_deg,
+    sacral_slope_deg,
+    sag_deg,
+    sva_mm,
+    t1_pelvic_angle_deg,
+    t1_spinopelvic_inclination_deg,
+    unsigned_pelvic_incidence_deg,
+)
 
 if TYPE_CHECKING:  # the shard jobs measure without pandas (measure_columns)
     import pandas as pd
@@ -84,353 +94,6 @@ UNITS: dict[str, str] = {
 def parameter_table_header(df: pd.DataFrame) -> pd.DataFrame:
     """Copy of ``df`` with unit-bearing headers for spreadsheets, e.g. ``"PI [deg]"``, ``"DH_L4-L5 [mm]"``."""
     return df.rename(columns={c: f"{c} [{UNITS[c]}]" for c in df.columns if UNITS.get(c)})
-
-
-# --------------------------------------------------------------------------------------------- fits
-
-
-def fit_planes(patch: np.ndarray, vertical: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Total-least-squares planes of a batch of patches.
-
-    patch: (B, K, 3) mm.  Returns centre (B, 3) = vertex mean, unit normal (B, 3) oriented so that
-    normal.vertical > 0, and rms (B,) = out-of-plane RMS residual in mm (sqrt of the smallest eigenvalue of
-    the covariance, equal to S[-1]/sqrt(K) of the SVD formulation).
-
-    :func:`_plane_fits` with one patch: raw moments about the first vertex (no centred copy), so round-off
-    stays far below 1e-5 mm wherever the model lies.
-    """
-    patch = np.asarray(patch, dtype=float)
-    centre, normal, rms = _plane_fits(patch, {"patch": np.arange(patch.shape[1])}, 0, np.asarray(vertical, float))
-    return centre[:, 0] + patch[:, 0], normal[:, 0], rms[:, 0]
-
-
-@numba.njit(cache=True)
-def _patch_moments_nb(points, rows, starts, origin_row):
-    """Mean (B, P, 3) and covariance (B, P, 3, 3) of the patches ``rows[starts[j]:starts[j + 1]]`` of points
-    (B, N, 3), relative to each model's vertex ``origin_row``: raw moments read straight from the batch (no
-    gathered copy), one pass per model."""
-    n_models, n_patches = points.shape[0], starts.shape[0] - 1
-    mean = np.empty((n_models, n_patches, 3))
-    cov = np.empty((n_models, n_patches, 3, 3))
-    for b in range(n_models):
-        o0, o1, o2 = (
-            np.float64(points[b, origin_row, 0]),
-            np.float64(points[b, origin_row, 1]),
-            np.float64(points[b, origin_row, 2]),
-        )
-        for j in range(n_patches):
-            # moments about the patch's first vertex: coordinates of the patch's size keep the cancellation in
-            # E[q q^T] - E[q] E[q]^T small (out-of-plane RMS of 1e-5 mm patches to ~2e-9 mm), then shifted to the
-            # model's origin
-            r0 = rows[starts[j]]
-            p0, p1, p2 = np.float64(points[b, r0, 0]), np.float64(points[b, r0, 1]), np.float64(points[b, r0, 2])
-            sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
-            for k in range(starts[j], starts[j + 1]):
-                r = rows[k]
-                x = np.float64(points[b, r, 0]) - p0
-                y = np.float64(points[b, r, 1]) - p1
-                z = np.float64(points[b, r, 2]) - p2
-                sx += x
-                sy += y
-                sz += z
-                sxx += x * x
-                sxy += x * y
-                sxz += x * z
-                syy += y * y
-                syz += y * z
-                szz += z * z
-            n = starts[j + 1] - starts[j]
-            mx, my, mz = sx / n, sy / n, sz / n
-            mean[b, j, 0], mean[b, j, 1], mean[b, j, 2] = mx + (p0 - o0), my + (p1 - o1), mz + (p2 - o2)
-            cov[b, j, 0, 0] = sxx / n - mx * mx
-            cov[b, j, 1, 1] = syy / n - my * my
-            cov[b, j, 2, 2] = szz / n - mz * mz
-            cov[b, j, 0, 1] = cov[b, j, 1, 0] = sxy / n - mx * my
-            cov[b, j, 0, 2] = cov[b, j, 2, 0] = sxz / n - mx * mz
-            cov[b, j, 1, 2] = cov[b, j, 2, 1] = syz / n - my * mz
-    return mean, cov
-
-
-def _plane_fits(points: np.ndarray, patches: dict[str, np.ndarray], origin_row: int, vertical: np.ndarray):
-    """TLS planes of every patch of every model in one pass and one pass of Jacobi rotations: points (B, N, 3) mm,
-    patches name -> vertex rows.  Returns centres (B, P, 3) relative to each model's vertex ``origin_row``, unit
-    normals (B, P, 3) with normal.vertical > 0, out-of-plane RMS (B, P) mm, patches in the dict's order.  Raw
-    moments, each patch about its own first vertex (its coordinates stay of the patch's size)."""
-    rows = [np.asarray(v, dtype=np.int64).ravel() for v in patches.values()]
-    starts = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
-    mean, cov = _patch_moments_nb(points, np.concatenate(rows), starts, origin_row)
-    if not np.isfinite(cov).all():
-        name = list(patches)[int(np.argmax(~np.isfinite(cov).all(axis=(0, 2, 3))))]
-        raise ValueError(f"non-finite coordinates in landmark set {name}")
-    w0, normal = np.empty(cov.shape[:-2]), np.empty(cov.shape[:-1])
-    _least_eigenpairs_nb(cov.reshape(-1, 3, 3), w0.reshape(-1), normal.reshape(-1, 3))
-    normal *= np.where(normal @ vertical < 0, -1.0, 1.0)[..., None]
-    return mean, normal, np.sqrt(np.clip(w0, 0.0, None))
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _least_eigenpairs_nb(cov, w0, v0):
-    """The smallest eigenvalue w0 (M,) and a unit eigenvector v0 (M, 3) of each symmetric 3x3 matrix of cov
-    (M, 3, 3), by cyclic Jacobi rotations (Rutishauser's form, as in Numerical Recipes' ``jacobi``).
-
-    Written here rather than ``np.linalg.eigh`` because LAPACK's per-matrix overhead made that ~0.9-1.3 us per
-    3x3 matrix (2 x 35 patches x 16,807 models per store stage); this takes 0.27-0.38 us (the stage's measure
-    phase 4.9 -> 4.2 s CPU, docs/store.md session 22).  Jacobi is accurate to round-off in every eigenpair, including the nearly-zero
-    out-of-plane variance of a flat patch beside two nearly equal in-plane ones (tested against LAPACK)."""
-    a = np.empty((3, 3))
-    v = np.empty((3, 3))
-    for m in range(cov.shape[0]):
-        for i in range(3):
-            for j in range(3):
-                a[i, j] = cov[m, i, j]
-                v[i, j] = 1.0 if i == j else 0.0
-        for sweep in range(50):
-            off = abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2])
-            # converged: an off-diagonal of 1e-18 x the trace tilts an eigenvector by ~1e-18 x trace / gap
-            # and moves an eigenvalue by its square over the gap, far below the round-off of the moments
-            if off <= 1e-18 * (abs(a[0, 0]) + abs(a[1, 1]) + abs(a[2, 2])):
-                break
-            for p, q, r in ((0, 1, 2), (0, 2, 1), (1, 2, 0)):
-                apq = a[p, q]
-                small = 100.0 * abs(apq)
-                if sweep > 3 and abs(a[p, p]) + small == abs(a[p, p]) and abs(a[q, q]) + small == abs(a[q, q]):
-                    a[p, q] = a[q, p] = 0.0  # below the diagonal's round-off: converged
-                    continue
-                if apq == 0.0:
-                    continue
-                h = a[q, q] - a[p, p]
-                if abs(h) + small == abs(h):
-                    t = apq / h  # tan of the angle ~ its half-angle formula's limit
-                else:
-                    theta = 0.5 * h / apq
-                    t = 1.0 / (abs(theta) + np.sqrt(1.0 + theta * theta))
-                    if theta < 0.0:
-                        t = -t
-                c = 1.0 / np.sqrt(1.0 + t * t)
-                s = t * c
-                tau = s / (1.0 + c)
-                a[p, p] -= t * apq
-                a[q, q] += t * apq
-                a[p, q] = a[q, p] = 0.0
-                arp, arq = a[r, p], a[r, q]
-                a[r, p] = a[p, r] = arp - s * (arq + tau * arp)
-                a[r, q] = a[q, r] = arq + s * (arp - tau * arq)
-                for i in range(3):
-                    vip, viq = v[i, p], v[i, q]
-                    v[i, p] = vip - s * (viq + tau * vip)
-                    v[i, q] = viq + s * (vip - tau * viq)
-        k = 0
-        if a[1, 1] < a[k, k]:
-            k = 1
-        if a[2, 2] < a[k, k]:
-            k = 2
-        w0[m] = a[k, k]
-        for i in range(3):
-            v0[m, i] = v[i, k]
-
-
-@numba.njit(cache=True)
-def _sphere_moments_nb(pts):
-    """Per model of pts (B, K, 3): mean (B, 3), and of the centred points q: sum q q^T (B, 3, 3), sum q |q|^2
-    (B, 3) and mean |q|^2 (B,).  Two passes over the points, no temporary arrays."""
-    n_models, k = pts.shape[0], pts.shape[1]
-    mu, qq, qs, s_mean = (
-        np.empty((n_models, 3)),
-        np.empty((n_models, 3, 3)),
-        np.empty((n_models, 3)),
-        np.empty(n_models),
-    )
-    for b in range(n_models):
-        sx = sy = sz = 0.0
-        for i in range(k):
-            sx += pts[b, i, 0]
-            sy += pts[b, i, 1]
-            sz += pts[b, i, 2]
-        mx, my, mz = sx / k, sy / k, sz / k
-        xx = xy = xz = yy = yz = zz = rx = ry = rz = ss = 0.0
-        for i in range(k):
-            x, y, z = pts[b, i, 0] - mx, pts[b, i, 1] - my, pts[b, i, 2] - mz
-            s = x * x + y * y + z * z
-            xx += x * x
-            xy += x * y
-            xz += x * z
-            yy += y * y
-            yz += y * z
-            zz += z * z
-            rx += x * s
-            ry += y * s
-            rz += z * s
-            ss += s
-        mu[b, 0], mu[b, 1], mu[b, 2] = mx, my, mz
-        qq[b, 0, 0], qq[b, 1, 1], qq[b, 2, 2] = xx, yy, zz
-        qq[b, 0, 1] = qq[b, 1, 0] = xy
-        qq[b, 0, 2] = qq[b, 2, 0] = xz
-        qq[b, 1, 2] = qq[b, 2, 1] = yz
-        qs[b, 0], qs[b, 1], qs[b, 2] = rx, ry, rz
-        s_mean[b] = ss / k
-    return mu, qq, qs, s_mean
-
-
-def fit_spheres(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Algebraic least-squares spheres of a batch of point sets (works on partial caps).
-
-    pts: (B, K, 3) mm.  Solves [2x 2y 2z 1][c; d] = x^2+y^2+z^2 on mean-centred points (for conditioning).
-    Returns centre (B, 3) and radius (B,) in mm.
-    """
-    mu, qq, qs, s_mean = _sphere_moments_nb(np.asarray(pts, dtype=float))
-    # centred points make the column of ones orthogonal to the 2q columns, so the 4x4 normal equations split
-    # into a 3x3 system for the centre offset and d = mean(|q|^2)
-    c = 0.5 * np.linalg.solve(qq, qs[:, :, None])[:, :, 0]
-    return mu + c, np.sqrt(s_mean + np.einsum("bi,bi->b", c, c))
-
-
-def patient_frame(
-    c_left: np.ndarray, c_right: np.ndarray, vertical: np.ndarray, symphysis: np.ndarray, s1_centre: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Medio-lateral Lh (left->right) and anterior A unit vectors (B, 3) from the femoral-head centres.
-
-    Lh = horizontal part of c_right - c_left, A = V x Lh.  Both are flipped where the symphysis centre lies
-    posterior to the S1 centre (left/right labels swapped).  Also returns the boolean ``flipped`` (B,).
-    """
-    d = c_right - c_left
-    h = d - (d @ vertical)[:, None] * vertical
-    norm = np.linalg.norm(h, axis=1)
-    if np.any(norm < 1e-9):
-        raise ValueError("femoral-head centres coincide in the horizontal plane: no medio-lateral axis")
-    lh = h / norm[:, None]
-    a = np.cross(vertical, lh)
-    flipped = np.einsum("bi,bi->b", symphysis - s1_centre, a) < 0
-    sign = np.where(flipped, -1.0, 1.0)[:, None]
-    return lh * sign, a * sign, flipped
-
-
-def sag_deg(v: np.ndarray, anterior: np.ndarray, vertical: np.ndarray) -> np.ndarray:
-    """Signed sagittal inclination atan2(v.A, v.V) in deg: 0 = up, positive = tilted anteriorly."""
-    return np.degrees(np.arctan2(np.einsum("...i,...i->...", v, anterior), v @ vertical))
-
-
-def cor_deg(v: np.ndarray, lateral: np.ndarray, vertical: np.ndarray) -> np.ndarray:
-    """Signed coronal inclination atan2(v.Lh, v.V) in deg: 0 = up, positive = tilted to the patient's right."""
-    return np.degrees(np.arctan2(np.einsum("...i,...i->...", v, lateral), v @ vertical))
-
-
-# --------------------------------------------------------------------------------- per-parameter formulas
-
-
-def sacral_slope_deg(n_s1, anterior, vertical):
-    """SS = sag(n_S1sup): S1 plate vs horizontal, positive when it slopes down anteriorly (§2.1)."""
-    return sag_deg(n_s1, anterior, vertical)
-
-
-def pelvic_tilt_deg(s1_centre, hip_axis, anterior, vertical):
-    """PT = -sag(S1mid - HA): positive when the S1 centre lies posterior to the hip axis (§2.2)."""
-    return -sag_deg(s1_centre - hip_axis, anterior, vertical)
-
-
-def pelvic_incidence_deg(ss_deg, pt_deg):
-    """PI = SS + PT with signed SS and PT (§2.3); morphological, independent of the vertical."""
-    return ss_deg + pt_deg
-
-
-def unsigned_pelvic_incidence_deg(n_s1, s1_centre, hip_axis, anterior, vertical):
-    """QC form of PI: unsigned angle between the sagittal projections of n_S1sup and S1mid - HA (deg)."""
-    return np.abs(sag_deg(n_s1, anterior, vertical) - sag_deg(s1_centre - hip_axis, anterior, vertical))
-
-
-def lordosis_deg(theta_upper_sup_deg, theta_lower_deg):
-    """Sagittal Cobb between two cranially oriented endplates, positive = lordosis (theta_lower - theta_upper)."""
-    return theta_lower_deg - theta_upper_sup_deg
-
-
-def kyphosis_deg(theta_upper_sup_deg, theta_lower_inf_deg):
-    """Sagittal Cobb between two cranially oriented endplates, positive = kyphosis (theta_upper - theta_lower)."""
-    return theta_upper_sup_deg - theta_lower_inf_deg
-
-
-def t1_spinopelvic_inclination_deg(t1_centre, hip_axis, anterior, vertical):
-    """T1SPI = sag(T1c - HA), positive when T1 lies anterior to the hip axis (§3.4)."""
-    return sag_deg(t1_centre - hip_axis, anterior, vertical)
-
-
-def t1_pelvic_angle_deg(pt_deg, t1spi_deg):
-    """TPA = PT + T1SPI: angle T1c-HA-S1mid (§3.4)."""
-    return pt_deg + t1spi_deg
-
-
-def global_tilt_deg(pt_deg, c7_centre, s1_centre, anterior, vertical):
-    """GT = PT + C7VT, C7VT = sag(C7c - S1mid): angle C7c-S1mid-HA, positive = C7 anterior (§3.3)."""
-    return pt_deg + sag_deg(c7_centre - s1_centre, anterior, vertical)
-
-
-def sva_mm(plumb_centre, s1_posterosuperior, anterior):
-    """Horizontal (A) offset of a plumb line from the S1 posterosuperior corner, positive = anterior (mm)."""
-    return np.einsum("...i,...i->...", plumb_centre - s1_posterosuperior, anterior)
-
-
-def disc_heights_mm(c_upper_inf, n_upper_inf, c_lower_sup, n_lower_sup, ant_upper, ant_lower, post_upper, post_lower):
-    """Central, anterior and posterior disc heights (mm) along the mean endplate normal (§5).
-
-    c_*: endplate centres; n_*: cranial unit normals; ant_/post_*: the rim points extreme in +A / -A of the
-    upper vertebra's inferior and the lower vertebra's superior endplate.  All (B, 3).
-    """
-    m = n_upper_inf + n_lower_sup
-    m = m / np.linalg.norm(m, axis=-1, keepdims=True)
-
-    def along(p, q):
-        return np.einsum("bi,bi->b", p - q, m)
-
-    return along(c_upper_inf, c_lower_sup), along(ant_upper, ant_lower), along(post_upper, post_lower)
-
-
-def cobb_angle(phi_sup_deg: np.ndarray, phi_inf_deg: np.ndarray, secondary_min_deg: float = 10.0) -> dict:
-    """Coronal Cobb by exhaustive end-vertebra search (§3.7), vectorised over the batch.
-
-    phi_sup_deg / phi_inf_deg: (B, L) coronal tilts of the superior / inferior endplates, cranial to caudal.
-    Main curve (i*, j*) = argmax_{i <= j} |phi_sup[i] - phi_inf[j]|.  Apex = vertebra in [i*, j*] whose
-    mid-plane tilt is closest to the mean of the two end tilts.  Convexity = +1 for a curve convex to the
-    patient's right (+Lh), i.e. sign(phi_inf[j*] - phi_sup[i*]).  Secondary curve = the largest curve of the
-    cranial block [0, i*] and the caudal block [j*, L-1] (shared end vertebrae allowed, the main pair
-    excluded); NaN when below ``secondary_min_deg``.
-    Returns arrays: cobb, upper, lower, apex (int indices), convexity, cobb2, upper2, lower2.
-    """
-    b, n = phi_sup_deg.shape
-    diff = phi_sup_deg[:, :, None] - phi_inf_deg[:, None, :]
-    mag = np.abs(diff)
-    ii, jj = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    valid = ii <= jj
-    main = np.where(valid, mag, -np.inf).reshape(b, -1)
-    k = np.argmax(main, axis=1)
-    up, lo = np.unravel_index(k, (n, n))
-    rows = np.arange(b)
-    cobb = main[rows, k]
-    convexity = np.sign(-diff[rows, up, lo])
-    convexity = np.where(convexity == 0, 1.0, convexity)
-    mid = 0.5 * (phi_sup_deg + phi_inf_deg)
-    target = 0.5 * (phi_sup_deg[rows, up] + phi_inf_deg[rows, lo])
-    lv = np.arange(n)[None, :]
-    in_curve = (lv >= up[:, None]) & (lv <= lo[:, None])
-    apex = np.argmin(np.where(in_curve, np.abs(mid - target[:, None]), np.inf), axis=1)
-    cranial = valid[None] & (jj[None] <= up[:, None, None])
-    caudal = valid[None] & (ii[None] >= lo[:, None, None])
-    same = (ii[None] == up[:, None, None]) & (jj[None] == lo[:, None, None])
-    sec = np.where((cranial | caudal) & ~same, mag, -np.inf).reshape(b, -1)
-    k2 = np.argmax(sec, axis=1)
-    cobb2 = sec[rows, k2]
-    up2, lo2 = np.unravel_index(k2, (n, n))
-    keep = cobb2 >= secondary_min_deg
-    return {
-        "cobb": cobb,
-        "upper": up,
-        "lower": lo,
-        "apex": apex,
-        "convexity": convexity,
-        "cobb2": np.where(keep, cobb2, np.nan),
-        "upper2": np.where(keep, up2, -1),
-        "lower2": np.where(keep, lo2, -1),
-    }
-
-
-# ------------------------------------------------------------------------------------------ measure
 
 
 class _Block:
@@ -563,7 +226,7 @@ def measure_columns(
 
     # 1. endplate planes: the 35 patches of all models in one pass (sup T1..L5, S1, then inf T1..L5)
     nl = len(LEVELS)
-    centre, normal, rms = _plane_fits(pts, patches, origin_row, v)
+    centre, normal, rms = plane_fits(pts, patches, origin_row, v)
     c_sup, n_sup, s1_c, s1_n = centre[:, :nl], normal[:, :nl], centre[:, nl], normal[:, nl]
     c_inf, n_inf = centre[:, nl + 1 :], normal[:, nl + 1 :]
     rms_max = rms.max(axis=1)

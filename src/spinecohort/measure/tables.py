@@ -123,8 +123,8 @@ def virtual_cohort_table(params: list[pd.DataFrame], quality: list[pd.DataFrame]
 
 def tri_vs_hex_summary(diffs: list[pd.DataFrame]) -> pd.DataFrame:
     """Per parameter over all shards: max |tri - hex| and its mean over every model, in its unit: the shards'
-    means weighted by their ``n_models`` (shards differ in size: the default's 8,407 and 8,400 models; tables
-    without the column, written before session 22, count alike)."""
+    means weighted by their ``n_models`` (shards differ in size: the default's 8,407 and 8,400 models; a table
+    without the column counts each shard whose mean exists once)."""
     d = pd.concat(diffs, ignore_index=True)
     n = d["n_models"] if "n_models" in d else d["mean_abs_diff"].notna().astype(float)  # 0 where the mean is NaN
     d = d.assign(_n=n, _sum=d["mean_abs_diff"].fillna(0.0) * n)
@@ -146,7 +146,7 @@ PERSONALIZATION_PREFIX = {"fit": "pers_fit", "projection": "pers_proj"}
 def with_personalization(patients: pd.DataFrame, personalization: pd.DataFrame) -> pd.DataFrame:
     """Patient sheet plus, per personalization method, its weights, posture, achieved-minus-target error of
     every fitted parameter and shape distances, with units in the headers, e.g. ``pers_fit_b1 [SD]``,
-    ``pers_fit_PI_error [deg]``, ``pers_proj_dist_mean [mm]`` (``personalize.personalize_cohort`` table)."""
+    ``pers_fit_PI_error [deg]``, ``pers_proj_dist_mean [mm]`` (``personalize.cohort.personalize_cohort`` table)."""
     out = patients.copy()
     for method, prefix in PERSONALIZATION_PREFIX.items():
         g = personalization[personalization["method"] == method].set_index("ID")

@@ -169,7 +169,7 @@ def inverted_over_grid(
     least one, their count and the lowest scaled Jacobian met.  ``contact=True``: of the models after the
     disc-contact distraction (``hex_ssm.contact``), and how many models it moved.
     """
-    from spinecohort.mesh.quality import morph_scaled_jacobian_nb, scaled_jacobian_batch_nb
+    from spinecohort.mesh.quality.kernels import morph_scaled_jacobian_nb, scaled_jacobian_batch_nb
 
     bad = models_bad = distracted = 0
     worst = np.inf

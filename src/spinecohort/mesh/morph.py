@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
-from spinecohort.mesh.quality import scaled_jacobian
+from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.registration import nonrigid_register, surface_distance
 from spinecohort.mesh.template import HexTemplate, OGrid, core_boundary_ids, fill_discs
 
@@ -45,7 +45,7 @@ class MorphParameters:
     kd_scale: float = 7.0
     kd_radius: float = 0.2
     bound_mm: float = 0.04  # multilayer stop: mean surface distance
-    max_layers: int = 0  # BCPD layers amplify round-off into mm of interior nodes (docs/hex_template.md)
+    max_layers: int = 0  # BCPD layers amplify round-off into mm of interior nodes (docs/explanation/hex-mesh.md)
     project: bool = True  # final closest-point projection of the surface nodes
     min_scaled_jacobian: float = 0.3  # a registration layer is kept only if the block stays above this
 

@@ -28,15 +28,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from spinecohort.mesh.quality import (
-    CORNER_NEIGHBOURS,
-    HEX_EDGES,
-    HEX_FACES,
-    _check_mesh,
-    certify_valid,
-    corner_jacobians,
-    min_scaled_jacobian_nb,
-)
+from spinecohort.mesh.quality.certificate import certify_valid
+from spinecohort.mesh.quality.element import CORNER_NEIGHBOURS, HEX_EDGES, HEX_FACES, check_mesh
+from spinecohort.mesh.quality.kernels import min_scaled_jacobian_nb
+from spinecohort.mesh.quality.verdict import corner_jacobians
 
 # scipy.optimize, scipy.sparse and pyvista are imported where they are used: a shard job imports this module
 # for the few models that need untangling (none on the default grid) and would pay ~0.5 s for them per job
@@ -84,7 +79,7 @@ def prepare_untangle(
     hexes: np.ndarray, reference_points: np.ndarray, feature_angle_deg: float = 30.0
 ) -> UntangleContext:
     """Precompute the topology and reference quality for ``untangle``; raises ValueError if the reference is invalid."""
-    ref, hexes = _check_mesh(reference_points, hexes)
+    ref, hexes = check_mesh(reference_points, hexes)
     if ref.ndim != 2:
         raise ValueError(f"reference_points must be (n_nodes, 3), got {ref.shape}")
     sj_ref, invalid_ref, _ = _bad_elements(ref, hexes, np.zeros(len(hexes)))
@@ -384,8 +379,8 @@ def untangle(
     Returns (repaired points (N, 3), RepairReport). A mesh without bad elements is returned unchanged (so a
     second call is a no-op). Raises RepairError naming the elements left invalid if every step fails.
     """
-    points, hexes = _check_mesh(points, hexes)
-    ref, _ = _check_mesh(reference_points, hexes)
+    points, hexes = check_mesh(points, hexes)
+    ref, _ = check_mesh(reference_points, hexes)
     if points.ndim != 2 or ref.shape != points.shape:
         raise ValueError(f"points {points.shape} and reference_points {ref.shape} must both be (n_nodes, 3)")
     if context is None:

@@ -12,7 +12,7 @@ Structure (all node ids 0-based here; the Abaqus export makes them 1-based):
   annulus fibrosus (AF: the outer rings, in radial layers).  ``cep_diameter_fraction`` < 1 makes the CEP cover
   the central endplate only and the outer rings of the CEP layers the annulus' insertion into the bony rim
   (``D_<disc>_RIM``, as in vivo): annulus with its fibre springs (the fibres insert into the bone), in the
-  bone's element type, the disc's node layers evenly spaced outside the cartilage (docs/rom.md "Session 15":
+  bone's element type, the disc's node layers evenly spaced outside the cartilage (docs/explanation/hex-mesh.md:
   without fibres the rim is a soft shear layer between the fibred annulus and the bone, and the thoracic
   units' axial rotation doubles; as a 0.7 mm layer its hexes invert next to the potted vertebra).
   Disc node layers are always placed by interpolation between the two adjacent endplates, so a disc fills
@@ -52,10 +52,10 @@ class TemplateResolution:
     cep_thickness_mm: float = 0.7  # cartilage endplate thickness (seed: 0.7 mm)
     #: the CEP layers are CEP out to the ring boundary whose enclosed area is nearest this fraction squared, annulus
     #: beyond it.  1.0 (the validated decks): the whole layer.  In vivo the cartilage covers ~70 % of the endplate's
-    #: diameter and the outer annulus inserts into the bony rim (Wang, Battie & Videman 2012 Eur Spine J 21:2316);
-    #: the rim of the layers is then ``D_<disc>_RIM``.  0.70 is measured in docs/rom.md "Sessions 13-15": the
-    #: units move as in vitro (11 of 13 in range at fibres 42 and 45 deg) but the T10-S1 model stops at 69 % of
-    #: flexion and 87 % of extension (the 0.7 mm central CEP hexes under the potted T10 invert), so it is not the default
+    #: diameter and the outer annulus inserts into the bony rim (Wang, Battie & Videman 2012 Eur Spine J 21:2316); the
+    #: rim of the layers is then ``D_<disc>_RIM``.  At 0.70 (docs/explanation/hex-mesh.md) the units move as in vitro
+    #: (11 of 13 in range at fibres 42 and 45 deg) but the T10-S1 model stops at 69 % of flexion and 87 % of extension
+    #: (the 0.7 mm central CEP hexes under the potted T10 invert), so it is not the default
     cep_diameter_fraction: float = 1.0
     exponent: float = 2.6  # superellipse exponent of the cross-section
 
@@ -274,7 +274,7 @@ class HexTemplate:
                 z["grid_outer"],
                 meta["np_ring"],
                 meta["shell_ring"],
-                meta.get("cep_ring", meta["shell_ring"]),  # templates before session 13: the whole layer is CEP
+                meta.get("cep_ring", meta["shell_ring"]),  # a template without cep_ring: the whole layer is CEP
             )
             return cls(
                 nodes=z["nodes"],
@@ -508,7 +508,8 @@ def fill_discs(hex_nodes: np.ndarray, layers: list[dict], cep_mm: float, rim: np
     from each endplate along the node's own line (so the CEP thickness is exact at every node), and the
     interior layers are evenly spaced between them.  rim: (n2,) bool, the nodes outside a partial CEP
     (`OGrid.rim_nodes`): there the annulus reaches the bone, and every disc layer is evenly spaced, so the
-    annulus' insertion is not a 0.7 mm element layer (docs/rom.md "Session 15": such thin hexes invert).
+    annulus' insertion is not a 0.7 mm element layer (such thin hexes invert next to a potted vertebra;
+    docs/explanation/hex-mesh.md).
     """
     for first, L in disc_runs(layers):
         lower, upper = hex_nodes[..., first - 1, :, :], hex_nodes[..., L, :, :]

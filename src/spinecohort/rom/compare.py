@@ -1,6 +1,6 @@
 """Comparison of a ROM table (`spinecohort.rom.run.solve_model`) with in-vitro references.
 
-Two criteria are reported side by side (docs/rom.md):
+Two criteria are reported side by side (docs/explanation/validation.md):
 
 * **calibration criterion** (``in_range``): a mean +- SD reference accepts mean +- ``acceptance_sd`` SD
   (config ``rom.acceptance_sd``, 1 SD); a range reference whose specimens kept their costovertebral joints
@@ -187,8 +187,8 @@ def with_rib_heads(val: pd.DataFrame) -> pd.DataFrame | None:
 
 
 def validation_markdown(val: pd.DataFrame) -> str:
-    """The validation table as the Markdown docs/rom.md shows (so the documented table is the code's own
-    output): ours, reference, both criteria, in range, distance from the criterion's centre."""
+    """The validation table as the Markdown docs/explanation/validation.md shows (so the documented table is the
+    code's own output): ours, reference, both criteria, in range, distance from the criterion's centre."""
 
     def ref_text(r) -> str:
         if r.ref_statistic == "mean_sd":

@@ -1,14 +1,14 @@
 """The cohort's mechanics: segmental ROM of the mean and of each shape mode at its extreme weights, the other
-weights 0 (rule ``rom_modes``; docs/rom.md).
+weights 0 (rule ``rom_modes``; docs/explanation/validation.md).
 
-On the default grid (5 modes, levels -3..3 SD) these are 11 models: the mean model_08403 and, per mode
-i = 1..5, the models at w_i = -3 and +3 SD, model_id = sum_i (w_i + 3) 7^(5 - i).  Each is solved by the
-rule ``rom_model`` (one Snakemake target per model, so a cluster profile fans them out); this module names
-them and gathers their tables.  Each model runs the functional units ``rom.mode_units`` (`mode_rom_config`), not
-the lumbar model: ~2 min per model instead of ~7 on 2 cores, and a unit's ROM equals that of the same segment
-inside the lumbar model (a pure moment is the same at every level, docs/rom.md).  A load case that did not reach the full moment keeps its ROM at the load
-fraction reached (``load_fraction`` < 1), so a non-converging model is reported, not dropped.
-Units: degrees, seconds.
+On the default grid (5 modes, levels -3..3 SD) these are 11 models: the mean model_08403 and, per mode i = 1..5, the
+models at w_i = -3 and +3 SD, model_id = sum_i (w_i + 3) 7^(5 - i).  Each is solved by the rule ``rom_model`` (one
+Snakemake target per model, so a cluster profile fans them out); this module names them and gathers their tables.  Each
+model runs the functional units ``rom.mode_units`` (`mode_rom_config`), not the lumbar model: ~2 min per model instead
+of ~7 on 2 cores, and a unit's ROM equals that of the same segment inside the lumbar model (a pure moment is the same
+at every level, docs/explanation/validation.md).  A load case that did not reach the full moment keeps its ROM at the
+load fraction reached (``load_fraction`` < 1), so a non-converging model is reported, not dropped. Units: degrees,
+seconds.
 """
 
 from __future__ import annotations

@@ -5,16 +5,15 @@ disc between T(n-1) and T(n), tied by the radiate ligament to both bodies and, b
 ligaments, to the transverse process of T(n).  Ribs 2..10 bridge a disc; rib 1 and ribs 11, 12 articulate with
 one vertebra only and bridge none (Gray's Anatomy), so the segments with a rib head are T1-T2 .. T9-T10.
 
-Per bridged segment and side, one new node (the rib head) sits `offset_mm` outside the posterolateral rim of
-the disc, at mid-height, and hangs on three linear spring groups, each of total stiffness
-`stiffness_n_per_mm`: to `rim_nodes` outer-rim nodes of the upper vertebra's inferior endplate, to as many of
-the lower vertebra's superior endplate, and to the lower vertebra's transverse-process tip.  No joint-level
-stiffness was obtained: the one published number, ~20 N/mm (J Biomech 2024;163:111923, two donors), was
-measured on the whole rib and cuts the T2-T3 unit's axial rotation by 1 %, against 10-16 % measured in vitro
-(Liebsch & Wilke 2020); 200 N/mm, the default, reproduces the 10 % (docs/rom.md).  A spine model without a
-rib cage (every exported deck) has no rib heads: the heads are a feature of the specimens, which is why they
-live here, in the ROM only (``rom.rib_heads.enabled``).
-Units: mm, N.
+Per bridged segment and side, one new node (the rib head) sits `offset_mm` outside the posterolateral rim of the disc,
+at mid-height, and hangs on three linear spring groups, each of total stiffness `stiffness_n_per_mm`: to `rim_nodes`
+outer-rim nodes of the upper vertebra's inferior endplate, to as many of the lower vertebra's superior endplate, and
+to the lower vertebra's transverse-process tip.  No joint-level stiffness was obtained: the one published number, ~20
+N/mm (J Biomech 2024;163:111923, two donors), was measured on the whole rib and cuts the T2-T3 unit's axial rotation
+by 1 %, against 10-16 % measured in vitro (Liebsch & Wilke 2020); 200 N/mm, the default, reproduces the 10 %
+(docs/explanation/fe-model.md "Calibration values and their sources").  A spine model without a rib cage (every
+exported deck) has no rib heads: the heads are a feature of the specimens, which is why they live here, in the ROM
+only (``rom.rib_heads.enabled``). Units: mm, N.
 """
 
 from __future__ import annotations

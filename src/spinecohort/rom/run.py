@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.fe.export import DEFAULT_MATERIALS, FEMaterials
+from spinecohort.fe.materials import DEFAULT_MATERIALS, FEMaterials
+from spinecohort.fe.pure_moment import LOAD_CASES
 from spinecohort.mesh.template import HexTemplate
-from spinecohort.rom.deck import LOAD_CASES, load_vector_nmm, rom_deck_text
+from spinecohort.rom.deck import load_vector_nmm, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
 from spinecohort.rom.reaction import generalised_load, reactions
 from spinecohort.rom.ribs import RIB_SEGMENTS, RibHeads
@@ -33,9 +34,9 @@ log = logging.getLogger(__name__)
 
 #: ccx's words for a load step it could not finish (the increment cut below its minimum, too many cutbacks),
 #: and the solver wrapper's for a run stopped at rom.timeout_s (a step crawling in 1e-5 increments near a
-#: limit load): both keep the ROM at the last converged load fraction, flagged, rather than losing the model
-#: ccx 2.20's fibre law aborting ("*ERROR in umat_elastic_fiber": it reads k2 before assigning it, docs/rom.md)
-#: depends on the iterates, so it is retried with the other attempts' settings like a non-convergence
+#: limit load): both keep the ROM at the last converged load fraction, flagged, rather than losing the model.
+#: ccx 2.20's fibre law aborting ("*ERROR in umat_elastic_fiber": it reads k2 before assigning it;
+#: docs/explanation/fe-model.md) depends on the iterates, so it is retried with the other attempts' settings like a non-convergence
 NONCONVERGENCE = re.compile(
     r"increment size smaller than minimum|too many cutbacks|divergence|timed out after|umat_elastic_fiber",
     re.IGNORECASE,
@@ -97,13 +98,13 @@ def run_case(
     # Newton iterations cycled between three states, residual 5e-4 N but a 100 % displacement correction):
     # keep the residual criterion (0.5 % of the reference force) and relax only the displacement-correction
     # one (C_n 0.01 -> 2); it reached the full load and agreed with the strict run to 0.001 deg at the load
-    # both reached (docs/rom.md).  Third: smaller increments with the relaxed C_n (session 11: with the C3D20R
-    # nucleus the lumbar extension's first 5 % increment aborts in ccx's fibre law, so the relaxed attempt never
-    # got past it, and smaller strict increments cycled at 98.5 %).  Fourth: strict with smaller increments.
+    # both reached (docs/explanation/fe-model.md).  Third: smaller increments with the relaxed C_n (with the
+    # C3D20R nucleus the lumbar extension's first 5 % increment aborts in ccx's fibre law, so the relaxed attempt
+    # never gets past it, and smaller strict increments cycle at 98.5 %).  Fourth: strict with smaller increments.
     # Fifth, guided: the third's settings with the top turning about the load's axis only (`guide_equations`).
     # With the annulus at the bony rim the T10-S1 flexion reaches an out-of-plane bifurcation at 92 % of the
     # load (the free top's lateral and axial rotations go singular; moment-rotation curve still stiffening);
-    # held, the path is the free one to 0.01 % before it and reaches the load (docs/rom.md "Session 17"); the
+    # held, the path is the free one to 0.01 % before it and reaches the load (docs/explanation/fe-model.md); the
     # moment that held it is reported (`CaseResult.guide_nmm`, the ROM table's guide_moment_nmm).
     # Then keep the ROM at the last converged load fraction, flagged, instead of losing the other load cases.
     relaxed_kw = {**deck_kw, "correction_tolerance": 2.0}
@@ -192,7 +193,7 @@ def run_case(
 def guide_moment(carried_nmm: np.ndarray, load_nmm: np.ndarray) -> np.ndarray:
     """The moment that guides a guided top (N.mm, global): what the fixed base carries beyond the load, across
     the load's axis.  Pure moments: base + load + guide = 0, so guide = carried - load; its part along the
-    axis is the elements' own moment leak (docs/moment_check.md), not guidance, and is left out."""
+    axis is the elements' own moment leak (docs/explanation/fe-model.md), not guidance, and is left out."""
     m = np.asarray(load_nmm, dtype=np.float64)
     axis = m / np.linalg.norm(m)
     extra = np.asarray(carried_nmm, dtype=np.float64) - m
@@ -230,7 +231,7 @@ def _log_iteration(model: RomModel, case: str, deck: Path, prints, coords, itera
 def carried_fraction(r: CaseResult) -> float:
     """Share of the load case's moment that the fixation carries at the last printed load, along the load's
     direction: carried . target / (load_fraction |target|^2).  1 for a model in equilibrium; C3D8R discs
-    leak some (docs/moment_check.md).  NaN without reaction prints."""
+    leak some (docs/explanation/fe-model.md).  NaN without reaction prints."""
     t = np.asarray(r.target_nmm, dtype=np.float64)
     den = float(r.load_fraction) * float(t @ t)
     return float(np.asarray(r.carried_nmm) @ t / den) if den > 0 and np.all(np.isfinite(r.carried_nmm)) else np.nan
@@ -291,14 +292,14 @@ def solver_config(rom: dict) -> dict:
 
 @dataclass(frozen=True)
 class Settings:
-    """The solver part of the ``rom:`` config block (docs/rom.md); the comparison keys (``model``,
+    """The solver part of the ``rom:`` config block (docs/reference/config.md); the comparison keys (``model``,
     ``references``, ``acceptance_sd``) are read by the comparison code, not here."""
 
     moment_nmm: float = 7500.0
     load_cases: tuple[str, ...] = tuple(LOAD_CASES)
     hex_type: str = "C3D8"
-    disc_hex_type: str = "C3D8R"  # annulus (docs/rom.md "Element choice")
-    nucleus_hex_type: str = "C3D20R"  # nucleus: C3D8R leaks moment, C3D8 locks (docs/moment_check.md)
+    disc_hex_type: str = "C3D8R"  # annulus (docs/explanation/fe-model.md "Elements")
+    nucleus_hex_type: str = "C3D20R"  # nucleus: C3D8R leaks moment, C3D8 locks (docs/explanation/fe-model.md)
     reference_force_n: float | None = 500.0
     nlgeom: bool = True
     initial_increment: float = 0.05
@@ -308,7 +309,7 @@ class Settings:
     lumbar: tuple[str, str] | None = ("T10", "S1")  # (top, bottom), None = no lumbar model
     #: the lumbar model's top turns about the load's axis only in every attempt (`rom_deck_text(guided=True)`):
     #: free, the T10-S1 model with the annulus at the bony rim bifurcates out of plane short of the load
-    #: (flexion 92 %, lateral bending 85.6 %) after 20+ min of Newton cycling per case (docs/rom.md "Session 17")
+    #: (flexion 92 %, lateral bending 85.6 %) after 20+ min of Newton cycling per case (docs/explanation/fe-model.md)
     lumbar_guided: bool = False
     units: tuple[tuple[str, str], ...] = ()  # functional units (upper, lower vertebra)
     all_effect: bool = True

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spinecohort.fe.export import materials_from_config
+from spinecohort.fe.materials import materials_from_config
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.compare import orderings, validate_from_config
 from spinecohort.rom.run import solve_model, solver_config, units_only
@@ -108,7 +108,7 @@ def variant_key(template: HexTemplate, points: np.ndarray, cfg: dict) -> str:
     the rom block (references, criteria, the sensitivity list and the thread count are left out: changing them
     re-solves nothing)."""
     # threads change the time, not the answer (ccx gave the same ROM to the last digit at 1 and 2 threads,
-    # docs/rom.md "Sensitivity")
+    # docs/explanation/validation.md "Sensitivity")
     solver_rom = {k: v for k, v in solver_config(unit_rom_config(cfg["rom"])).items() if k != "threads"}
     return json.dumps(
         {"code": solver_code_digest(), "mesh": mesh_digest(template, points), "fe": cfg["fe"], "rom": solver_rom},

@@ -7,7 +7,7 @@ Units: mm, N, N.mm, degrees.
 What a ROM model contains (`extract_rom_model`): the conforming hex column of the bodies and the discs
 between them, every ligament whose two ends lie on the kept vertebrae and (optionally) one facet-joint gap
 element per joint.  Elements: C3D8 for bone and cartilage endplates, C3D8R for the disc soft tissue
-(docs/rom.md "Element choice": C3D8/C3D8I abort ccx 2.20's fibre law in the annulus, and a fully integrated
+(docs/explanation/fe-model.md "Elements": C3D8/C3D8I abort ccx 2.20's fibre law in the annulus, and a fully integrated
 C3D8 locks the nearly incompressible nucleus in bending).
 The posterior elements are S3 skins in the template and share no node with the hex bodies; bone is ~10^4
 times stiffer than disc and ligament, so each posterior arch is modelled as rigid: a stiff truss joins its
@@ -23,8 +23,9 @@ Facet joints (`spinecohort.fe.facets`, the same contacts as the exported decks):
 and, if configured, an extension stop of the inferior articular process tip on the lamina below; stand-ins for
 surface contact, which the S3 skins cannot provide here.
 
-Limitations (docs/rom.md): facet contact is point gaps, not surface contact; no posterior ligaments or
-facets between L5 and the sacrum (the template has no sacral anchors); no rib cage (thoracic units).
+Limitations (docs/explanation/fe-model.md "Limitations"): facet contact is point gaps, not surface contact; no
+posterior ligaments or facets between L5 and the sacrum (the template has no sacral anchors); no rib cage (thoracic
+units).
 """
 
 from __future__ import annotations
@@ -45,19 +46,9 @@ from spinecohort.fe.connections import (
     posterior_wall,
     truss_pairs,
 )
-from spinecohort.fe.export import (
-    DEFAULT_MATERIALS,
-    FEMaterials,
-    add_fibres,
-    annulus_fibres,
-    annulus_ring_sets,
-    disc_orientations,
-    hex_blocks,
-    hex_section,
-    ligament_table,
-    material_cards,
-)
+from spinecohort.fe.export import add_fibres, annulus_fibres, disc_orientations, hex_blocks, hex_section
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
+from spinecohort.fe.materials import DEFAULT_MATERIALS, FEMaterials, annulus_ring_sets, ligament_table, material_cards
 from spinecohort.fe.quadratic import quadratic_blocks, ties_on
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 from spinecohort.rom.ribs import RibHeads, rib_head_nodes
@@ -127,7 +118,8 @@ def extract_rom_model(
     coordinates ``points`` (N, 3) mm in template node order.
 
     hex_type: element of bone and cartilage endplates; disc_hex_type: element of the annulus (None: the same as
-    hex_type); nucleus_hex_type: element of the nucleus (None: the annulus'); see docs/rom.md for why they differ.
+    hex_type); nucleus_hex_type: element of the nucleus (None: the annulus'); see docs/explanation/fe-model.md for
+    why they differ.
     ligament_groups: the groups to keep (default all, ALL per ``include_all``); () = discs alone.
     facets: facet-joint contact, a strut (or GAPUNI) per facet joint and stop (`FacetContact`); None = no contact.
     ribs: the specimens' rib heads as springs (`spinecohort.rom.ribs`); None = none (a spine without ribs)."""
@@ -198,7 +190,7 @@ def extract_rom_model(
     n_hexes = len(hex_ids)
     lig_conn = new_of[ligs]
     # quadratic hexes (the nucleus), conforming to their linear neighbours by midside ties (`spinecohort.fe.quadratic`;
-    # docs/moment_check.md: C3D8R discs leak moment, C3D8 locks the nucleus)
+    # docs/explanation/fe-model.md: C3D8R discs leak moment, C3D8 locks the nucleus)
     n_before = len(pts)
     pts, blocks, ties = quadratic_blocks(pts, blocks)
     source = np.concatenate([source, np.full(len(pts) - n_before, -1)])
@@ -257,7 +249,7 @@ def extract_rom_model(
         tied = np.concatenate([wall, a])
         # the loaded top and a unit's fixed bottom vertebra are potted in vitro: the whole vertebra (body
         # and arch) is rigid.  With only its superior endplate rigid, ccx's Newton iterations stalled next
-        # to the rigid body once the top had turned > 13 deg (lumbar flexion, docs/rom.md).
+        # to the rigid body once the top had turned > 13 deg (lumbar flexion, docs/explanation/fe-model.md).
         body = new_of[np.arange(inf_l * n2, (sup_l + 1) * n2)]
         if v == verts[-1]:
             fixed = np.unique(np.concatenate([tied, body]))
@@ -267,7 +259,7 @@ def extract_rom_model(
             # an intermediate arch: a stiff truss from every anchor to every posterior-wall node and between
             # the anchors.  Seven *RIGID BODY arches in the lumbar model stalled ccx's Newton iterations
             # (flexion: 14 -> 43 iterations per increment, no convergence past 35 % of the load, discs
-            # alone); without them, 10 per increment to the full load (docs/rom.md).
+            # alone); without them, 10 per increment to the full load (docs/explanation/fe-model.md).
             # less than MIN_SPRING_MM long (the extension stop's node sits on the IAP-tip anchor): no direction
             pairs = drop_short(pts, truss_pairs(a, wall))
             arch_springs.append((v, pairs))
@@ -350,7 +342,7 @@ def potted_plate(
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
     """Refuse a model with an inverted (or too distorted) hex before the solver is called; returns the
     minimum scaled Jacobian."""
-    from spinecohort.mesh.quality import scaled_jacobian
+    from spinecohort.mesh.quality.verdict import scaled_jacobian
 
     hexes = np.concatenate([c[:, :8] for t, c in model.fe.element_blocks.values() if t in SOLID_TYPES])
     sj = scaled_jacobian(model.fe.nodes, hexes)

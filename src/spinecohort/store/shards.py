@@ -33,7 +33,7 @@ from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
 from spinecohort.measure.spinopelvic import measure_columns
 from spinecohort.mesh.contact import add_level_offsets_nb, distraction_summary, resolve_contact
 from spinecohort.mesh.hex_ssm import HexSSM
-from spinecohort.mesh.quality import model_quality, part_codes
+from spinecohort.mesh.quality.table3 import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM

@@ -412,7 +412,7 @@ class Platform:
         )
 
     def show_fit(self) -> None:
-        from spinecohort.personalize import personalized_hex
+        from spinecohort.personalize.cohort import personalized_hex
 
         res = self._fit
         if res is None:

@@ -328,7 +328,7 @@ class CohortData:
                 return read_deck_points(self.src.personalized_dir / f"{name}.inp", self.template)
             except ValueError:
                 raise PlatformError(f"{name}.inp does not have the template's {self.template.n_nodes} nodes") from None
-        from spinecohort.personalize import personalized_hex
+        from spinecohort.personalize.cohort import personalized_hex
 
         row = self.personalization[self.personalization["ID"].astype(str) == name].iloc[0]
         posture = float(row["posture_deg"]) if "posture_deg" in row.index and np.isfinite(row["posture_deg"]) else 0.0
@@ -357,7 +357,7 @@ class CohortData:
         """(file name, bytes) of a model's download: for a grid model exactly what ``spinecohort export``
         writes (``virtual_model`` + ``write_model``, the same materials); for a patient, its deck from
         ``personalized/``."""
-        from spinecohort.fe.export import materials_from_config
+        from spinecohort.fe.materials import materials_from_config
         from spinecohort.fe.models import virtual_model, write_model
 
         name = self.check_id(name)
@@ -413,7 +413,7 @@ class CohortData:
     # ------------------------------------------------------------------- find my patient
     def check_targets(self, targets: dict) -> dict[str, float]:
         """PI/PT/SS/LL typed in the page (any subset; '' = not given) -> targets with PI = PT + SS enforced."""
-        from spinecohort.personalize import complete_pelvic_targets
+        from spinecohort.personalize.parameters import complete_pelvic_targets
 
         given = {}
         for k in PATIENT_PARAMETERS:
@@ -447,7 +447,7 @@ class CohortData:
             raise PlatformError("the continuous fit needs the results' cohort.npz and the config's personalize block")
         if self._fit_model is None:
             from spinecohort.cohort.landmarks import Landmarks
-            from spinecohort.personalize import Settings, build_model
+            from spinecohort.personalize.cohort import Settings, build_model
 
             settings = Settings.from_config(self.src.personalize, self.n_modes)
             self._fit_model = build_model(self.ssm, Landmarks.from_cohort(self.src.cohort), settings, self.src.measure)
@@ -466,9 +466,10 @@ class CohortData:
         """The .inp deck of continuous mode ``weights`` (SD): the hex SSM's shape with the contact
         distraction, the Jacobian check and repair, turned by ``posture_deg`` (``personalized_hex``), in the
         run's materials (``fe_model`` + ``write_inp``)."""
-        from spinecohort.fe.abaqus import write_inp
-        from spinecohort.fe.export import fe_model, materials_from_config
-        from spinecohort.personalize import personalized_hex
+        from spinecohort.fe.export import fe_model
+        from spinecohort.fe.materials import materials_from_config
+        from spinecohort.fe.writers import write_inp
+        from spinecohort.personalize.cohort import personalized_hex
 
         w = self.check_weights(weights)
         heading = heading or f"spinecohort model of shape-mode weights (SD) {np.round(w, 4).tolist()}"

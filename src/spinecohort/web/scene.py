@@ -15,7 +15,7 @@ from __future__ import annotations
 import matplotlib.colors
 import numpy as np
 
-from spinecohort.figures import (
+from spinecohort.figures.render import (
     HEX_PART_STYLE,
     LIGAMENT_STYLE,
     SURFACE_STYLE,
