@@ -20,6 +20,7 @@ PACKAGE = SRC / "spinecohort"
 LAYERS: list[set[str]] = [
     {"<root>", "atomic", "logs", "config", "layout", "testing"},  # utilities: no pipeline stage
     {"store"},  # the Zarr store's format, grid of model IDs, reading and writing, the shard tables' columns
+    {"anatomy"},  # the labeled reference spine (real bone surfaces) and its morphometry
     {"cohort"},  # patients' meshes and landmarks
     {"ssm"},  # alignment and the statistical shape model
     {"measure"},  # spinopelvic parameters (of patients, of virtual models, the cohort sheet)
@@ -54,8 +55,6 @@ MAX_MODULE_LINES = 600
 #: this set at merge (the test fails on an entry that is no longer over the limit)
 BEING_SPLIT_ELSEWHERE = {
     "store/zarr_store.py",
-    "release.py",
-    "web/app.py",
     "mesh/registration.py",
     "cohort/synthetic.py",
 }
