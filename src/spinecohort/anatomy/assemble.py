@@ -210,13 +210,16 @@ def assemble(parts: dict, carriers: dict, bodies: dict, facets: dict, heads: dic
         side[np.isin(region, [region_id(r)])] = -1
         side[np.isin(region, [region_id(r.replace("left", "right"))])] = 1
 
-    # sacrum: the S1 plate is the cranially facing part of the S1 body's top
+    # sacrum: the S1 plate is the part of the S1 body that faces L5's inferior endplate across the disc
     so = offsets["S1"]
     sp_, sf_ = parts["S1"]
     sn = labeling.vertex_normals(sp_, sf_)
-    s_body = inside_or_near(sp_, *bodies["S1"], 1.0)
-    z_top = sp_[s_body, 2].max()
-    plate = np.flatnonzero(s_body & (sn[:, 2] > 0.6) & (sp_[:, 2] > z_top - 12.0))
+    s_body = inside_or_near(sp_, *bodies["S1"], BODY_TOLERANCE_MM)
+    l5_inf = parts["L5"][0][vert["L5"]["endplate_inf"]]
+    u = np.linalg.svd(l5_inf - l5_inf.mean(0))[2][-1]
+    u *= np.sign(u[2])
+    near_l5 = cKDTree(l5_inf).query(sp_)[0] < 20.0
+    plate = np.flatnonzero(s_body & (sn @ u > 0.6) & near_l5)
     plate = labeling._largest_component(plate, sf_)
     band, edge = labeling.boundary_band(plate, sf_, sp_, 3.0)
     g = so + np.arange(len(sp_))

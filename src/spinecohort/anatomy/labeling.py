@@ -24,6 +24,10 @@ from scipy.spatial import cKDTree
 
 from spinecohort.anatomy.labels import region_id
 
+#: an endplate vertex lies within this distance of the patch's least-squares plane (the central concavity of
+#: a lumbar endplate is 1-3 mm deep)
+PLANE_TOLERANCE_MM = 4.0
+
 
 def posterior_regions(points: np.ndarray, is_body: np.ndarray, lmk: np.ndarray) -> np.ndarray:
     """(N,) region label of every vertex of one vertebra (body where ``is_body``)."""
@@ -95,7 +99,12 @@ def endplates(points, normals, faces, is_body, rim_mm: float = 3.0) -> dict[str,
     out = {}
     for key, sign in (("sup", 1.0), ("inf", -1.0)):
         sel = body[(sign * normals[body, 2] > 0.6) & (sign * (points[body, 2] - z_mid) > 0)]
-        # keep the largest connected patch: drop stray vertices on the body wall's lip
+        # drop vertices off the endplate's plane (the pedicle bases and the wall's lip also face cranially or
+        # caudally), then keep the largest connected patch
+        for _ in range(3):
+            p = points[sel]
+            normal = np.linalg.svd(p - p.mean(0))[2][-1]
+            sel = sel[np.abs((p - p.mean(0)) @ normal) < PLANE_TOLERANCE_MM]
         out[f"endplate_{key}"] = _largest_component(sel, faces)
         band, edge = boundary_band(out[f"endplate_{key}"], faces, points, rim_mm)
         out[f"rim_band_{key}"] = band
