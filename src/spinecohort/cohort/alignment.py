@@ -200,15 +200,22 @@ class Chain:
     lengths: np.ndarray  # (34,) central heights of the joints (discs and bodies), mm
 
 
-def build_chain(p: PatientParameters) -> Chain:
-    """Stack the column on the S1 plate of the tilted pelvis."""
+def build_chain(
+    p: PatientParameters, body_height_mm: np.ndarray | None = None, disc_height_mm: np.ndarray | None = None
+) -> Chain:
+    """Stack the column on the S1 plate of the tilted pelvis.
+
+    body_height_mm / disc_height_mm: (17,) central body heights T1..L5 and disc heights T1-T2..L5-S1 before
+    the patient's scale and disc factor; the generic tables by default."""
+    body = BODY_HEIGHT if body_height_mm is None else np.asarray(body_height_mm, float)
+    disc = DISC_HEIGHT if disc_height_mm is None else np.asarray(disc_height_mm, float)
     sag = p.SS + np.concatenate([[0.0], np.cumsum(sagittal_joint_angles(p))])
     cor = coronal_endplate_tilts(p)
     normals = endplate_normal(sag, cor)
     frames = np.stack([endplate_frame(n) for n in normals])
     lengths = np.empty(N_POS - 1)
-    lengths[0::2] = (DISC_HEIGHT * p.disc_factor)[::-1] * p.scale  # disc below L5 first
-    lengths[1::2] = BODY_HEIGHT[::-1] * p.scale
+    lengths[0::2] = (disc * p.disc_factor)[::-1] * p.scale  # disc below L5 first
+    lengths[1::2] = body[::-1] * p.scale
     centres = np.empty((N_POS, 3))
     centres[0] = rot_x(p.PT) @ np.array([0.0, 0.0, p.pelvic_radius])
     for j in range(N_POS - 1):
