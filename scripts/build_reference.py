@@ -1,5 +1,11 @@
 """Rebuild the vendored reference spine ``src/spinecohort/data/reference/reference_spine.npz`` from upstream.
 
+Run (about 4 min on 2 cores; prints every check; writes the npz whose README lists the steps):
+
+    git clone https://github.com/RemusR9/artisynth_lumbosacralSpineModel /tmp/remus
+    pip download myo-sim==0.2.4 --no-deps -d /tmp/myo && unzip -q /tmp/myo/myo_sim-0.2.4-*.whl -d /tmp/myo
+    python scripts/build_reference.py --remus-git /tmp/remus/.git --myo-models /tmp/myo/myo_sim/models
+
 Upstream inputs (not vendored; pass their locations):
 
 * ``--remus-git``: a git directory of github.com/RemusR9/artisynth_lumbosacralSpineModel (BSD-3; Visible
@@ -252,8 +258,8 @@ def pair_checks(parts: dict) -> dict:
 
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--remus-git", default="/work/.mirror/RemusR9+artisynth_lumbosacralSpineModel/repo")
-    ap.add_argument("--myo-models", default="/work/upstream/myo_sim_whl/myo_sim/models")
+    ap.add_argument("--remus-git", required=True, help="git dir of RemusR9/artisynth_lumbosacralSpineModel")
+    ap.add_argument("--myo-models", required=True, help="myo_sim/models of the unpacked myo-sim 0.2.4 wheel")
     ap.add_argument("--out", default="src/spinecohort/data/reference/reference_spine.npz")
     ap.add_argument("--edge-vertebra", type=float, default=2.2, help="target edge length on the vertebrae, mm")
     ap.add_argument("--edge-sacrum", type=float, default=3.5)

@@ -73,3 +73,28 @@ def push_out(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
         _move_out(va, fixed, gap_mm * (1.0 + 0.5 * r))
         left = intersections_between(va, a[1], *b)
     return va, left
+
+
+def adjacent_contacts(vertices: np.ndarray, faces: np.ndarray, level: np.ndarray, region: np.ndarray) -> dict:
+    """Crossing triangle pairs and closest vertex gap (mm) of every pair of neighbouring bones of one model in
+    the reference topology: T1-T2 ... L5-S1 (the sacrum: regions sacrum and S1 plate), S1-pelvis and each
+    femur against the hip bones.  ``level``/``region``: the reference's per-vertex labels."""
+    from spinecohort.anatomy.labels import region_id
+
+    sacrum = np.isin(region, [region_id("sacrum"), region_id("s1_plate")])
+    bones = [level == i for i in range(int(level.max()) + 1)] + [sacrum]
+    names = [f"level{i}" for i in range(int(level.max()) + 1)] + ["S1"]
+    from spinecohort.cohort.landmarks import LEVELS
+
+    names[: len(LEVELS)] = LEVELS
+    hip = np.isin(region, [region_id("ilium"), region_id("pubis")])
+    head = region == region_id("femoral_head")
+    pairs = [(names[k], bones[k], names[k + 1], bones[k + 1]) for k in range(len(bones) - 1)]
+    pairs += [("S1", sacrum, "pelvis", hip), ("femur_L", head & (vertices[:, 0] < 0), "pelvis", hip)]
+    pairs += [("femur_R", head & (vertices[:, 0] > 0), "pelvis", hip)]
+    out = {}
+    for na, ma, nb, mb in pairs:
+        fa, fb = faces[np.all(ma[faces], axis=1)], faces[np.all(mb[faces], axis=1)]
+        gap = float(cKDTree(vertices[ma]).query(vertices[mb])[0].min())
+        out[f"{na}-{nb}"] = {"crossings": intersections_between(vertices, fa, vertices, fb), "min_gap_mm": gap}
+    return out
