@@ -16,7 +16,10 @@ How a vertebra follows its two endplates: each endplate ``e`` gets the similarit
 to the patient's (``C_e``, frame of the chain); a vertex at relative height ``w`` between the reference
 inferior (0) and superior (1) endplate centres, clipped to [0, 1], moves to ``(1 - w) T_inf(x) + w T_sup(x)``.
 The endplate patches and rim bands have ``w`` exactly 0 or 1, so they move rigidly and the plane and centre
-the measurement fits are exactly the imposed ones.  The pelvis, sacrum and femoral heads move as one
+the measurement fits are exactly the imposed ones.  The posterior arch near a facet joint (within
+``JOINT_RADIUS_MM`` of an articular surface) or hanging below the inferior endplate (fully at ``HANG_MM``)
+blends towards the map shared by both sides of the joint, and a disc that would bring two bodies closer than
+``MIN_BODY_GAP_MM`` is made higher (its imposed height, hence the truth, follows).  The pelvis, sacrum and femoral heads move as one
 similarity (after the sacral turn), so the head spheres stay spheres.
 
 Ground truth: the chain's imposed angles and positions (:func:`alignment.true_parameters`) with the pelvic
@@ -188,6 +191,7 @@ def rot_sac_point(fr: ReferenceFrames, rot_sac: np.ndarray) -> np.ndarray:
 #: support radius (mm) of the facet-joint weight: posterior-element vertices within it of an articular
 #: surface follow the joint's shared transform
 JOINT_RADIUS_MM = 12.0
+HANG_MM = 8.0
 
 
 def _joint_weights(ref: Reference) -> tuple[np.ndarray, np.ndarray]:
@@ -197,9 +201,15 @@ def _joint_weights(ref: Reference) -> tuple[np.ndarray, np.ndarray]:
 
     v = ref.vertices
     out = {"inf": np.zeros(len(v)), "sup": np.zeros(len(v))}
+    fr = reference_frames(ref)
     for i, lv in enumerate(LEVELS):
         idx = ref.vertebra(i)
         post = idx[ref.region[idx] != 0]
+        # the arch below the inferior endplate (the caudally hanging processes, behind the next level) moves
+        # with the disc's lower side as it gets deeper: fully at HANG_MM below
+        c0, c1 = fr.centre[(lv, "inf")], fr.centre[(lv, "sup")]
+        axis = (c1 - c0) / np.linalg.norm(c1 - c0)
+        out["inf"][post] = np.clip(-(v[post] - c0) @ axis / HANG_MM, 0.0, 1.0)
         for key in ("inf", "sup"):
             if key == "sup" and i == 0:
                 continue  # T1's superior facets have no partner in the model
@@ -207,11 +217,13 @@ def _joint_weights(ref: Reference) -> tuple[np.ndarray, np.ndarray]:
             if len(surf) == 0:
                 continue
             d = cKDTree(v[surf.astype(int)]).query(v[post])[0]
-            out[key][post] = np.clip(1.0 - d / JOINT_RADIUS_MM, 0.0, 1.0) ** 2
+            out[key][post] = np.maximum(out[key][post], np.clip(1.0 - d / JOINT_RADIUS_MM, 0.0, 1.0) ** 2)
     return out["inf"], out["sup"]
 
 
-def build_real_patient(p, turn_deg, ref, fr, weights, body_factor, joints=None) -> tuple[np.ndarray, dict]:
+def build_real_patient(
+    p, turn_deg, ref, fr, weights, body_factor, joints=None, disc_mm=None
+) -> tuple[np.ndarray, dict]:
     """Vertices (N, 3) mm of one patient in its placed frame, and its true parameters."""
     r, s, t, rot_sac, pi, radius = pelvis_similarity(fr, turn_deg, p.PT, p.scale)
     heads = {k: s * r @ c + t for k, c in fr.head_centre.items()}
@@ -222,7 +234,7 @@ def build_real_patient(p, turn_deg, ref, fr, weights, body_factor, joints=None) 
         fh_radius=fr.head_radius["L"] * s,
         hip_width=float(np.linalg.norm(heads["R"] - heads["L"])),
     )
-    chain = build_chain(p, fr.body_height * body_factor, fr.disc_height)
+    chain = build_chain(p, fr.body_height * body_factor, fr.disc_height if disc_mm is None else disc_mm)
     # the S1 centre's medio-lateral offset from the hip-axis midpoint: the column stands on the real plate
     s1 = s * r @ rot_sac_point(fr, rot_sac) + t
     chain.centres += s1 - chain.centres[0]
@@ -267,6 +279,26 @@ def build_real_patient(p, turn_deg, ref, fr, weights, body_factor, joints=None) 
     )
     placement = Rotation.from_euler("z", p.axial_rotation_deg, degrees=True).as_matrix()
     return out @ placement.T + p.translation, truth
+
+
+#: closest body-to-body distance (mm) every disc of a patient keeps; a narrowed or wedged disc that would come
+#: closer is made higher (the disc height is imposed, so the truth follows)
+MIN_BODY_GAP_MM = 1.0
+
+
+def open_discs(p, turn, ref, fr, weights, body_factor, joints, bodies, rounds: int = 4):
+    """`build_real_patient` with every disc high enough that the bodies keep ``MIN_BODY_GAP_MM`` apart."""
+    from scipy.spatial import cKDTree
+
+    disc = fr.disc_height.copy()
+    for _ in range(rounds):
+        v, truth = build_real_patient(p, turn, ref, fr, weights, body_factor, joints, disc)
+        gaps = np.array([cKDTree(v[bodies[k]]).query(v[bodies[k + 1]])[0].min() for k in range(len(LEVELS))])
+        short = gaps < MIN_BODY_GAP_MM
+        if not short.any():
+            break
+        disc[short] += (MIN_BODY_GAP_MM - gaps[short] + 0.5) / (p.disc_factor[short] * p.scale)
+    return v, truth
 
 
 def first_use_reference(ref: Reference) -> Reference:
@@ -322,6 +354,8 @@ def generate_real_cohort(
     fr = reference_frames(ref)
     weights = _vertebra_weights(ref, fr)
     joints = _joint_weights(ref)
+    bodies = [np.flatnonzero((ref.level == i) & (ref.region == 0)) for i in range(len(LEVELS))]
+    bodies.append(np.flatnonzero(ref.region == 12))  # the S1 plate region
     rng = np.random.default_rng(seed)
     verts, rows, n_cand = [], [], 0
     while len(verts) < n_patients:
@@ -330,7 +364,7 @@ def generate_real_cohort(
         n_cand += 1
         p, turn = draw_real_patient(rng, f"P{len(verts) + 1:02d}", fr)
         body_factor = rng.normal(1.0, BODY_HEIGHT_SD, size=len(LEVELS))
-        v, truth = build_real_patient(p, turn, ref, fr, weights, body_factor, joints)
+        v, truth = open_discs(p, turn, ref, fr, weights, body_factor, joints, bodies)
         if not meets_criteria(truth, criteria):
             continue
         verts.append(v)
