@@ -17,6 +17,7 @@ if config["cohort"]["source"] == "synthetic":
         threads: 1
         params:
             synthetic=config["synthetic"],
+            generator=config["cohort"]["generator"],
         script:
             "../scripts/synthetic_cohort.py"
 

@@ -2,19 +2,24 @@
 from pathlib import Path
 
 from spinecohort.cohort.loading import write_cohort_folder
+from spinecohort.cohort.real import generate_real_cohort
 from spinecohort.cohort.synthetic import generate_cohort
 from spinecohort.logs import Progress, to_file
 
 with to_file(snakemake.log[0]) as log:
     p = snakemake.params.synthetic
-    cohort = generate_cohort(
-        p["n_patients"],
-        seed=p["seed"],
-        resolution=p["resolution"],
-        noise_mm=p["noise_mm"],
-        criteria=p["criteria"],
-        progress=Progress("patients built", p["n_patients"]),
-    )
+    progress = Progress("patients built", p["n_patients"])
+    if snakemake.params.generator == "real":
+        cohort = generate_real_cohort(p["n_patients"], seed=p["seed"], criteria=p["criteria"], progress=progress)
+    else:
+        cohort = generate_cohort(
+            p["n_patients"],
+            seed=p["seed"],
+            resolution=p["resolution"],
+            noise_mm=p["noise_mm"],
+            criteria=p["criteria"],
+            progress=progress,
+        )
     log.info(
         "%d patients (%d candidates drawn), %d vertices and %d triangles each",
         len(cohort.ids),

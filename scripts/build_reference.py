@@ -1,0 +1,323 @@
+"""Rebuild the vendored reference spine ``src/spinecohort/data/reference/reference_spine.npz`` from upstream.
+
+Run (about 4 min on 2 cores; prints every check; writes the npz whose README lists the steps):
+
+    git clone https://github.com/RemusR9/artisynth_lumbosacralSpineModel /tmp/remus
+    pip download myo-sim==0.2.4 --no-deps -d /tmp/myo && unzip -q /tmp/myo/myo_sim-0.2.4-*.whl -d /tmp/myo
+    python scripts/build_reference.py --remus-git /tmp/remus/.git --myo-models /tmp/myo/myo_sim/models
+
+Upstream inputs (not vendored; pass their locations):
+
+* ``--remus-git``: a git directory of github.com/RemusR9/artisynth_lumbosacralSpineModel (BSD-3; Visible
+  Human Male geometry, Remus et al. 2021).  Read with ``git show HEAD:<path>``.
+* ``--myo-models``: ``myo_sim/models`` of the PyPI wheel ``myo-sim`` 0.2.4 (Apache-2.0).
+
+Steps (the data README lists them with the numbers this script prints):
+
+1. Remus L1-L5, sacrum (S1), hip bones (Pelvis) and the body-only meshes (``*_body.obj``) and superior facet
+   patches (``*_PDl_a`` / ``*_PDr_a``): metres -> mm; frame (+X anterior, +Y left, +Z superior) -> RAS
+   (x = -Y, y = X, z = Z; +Y is the patient's left: the ``PDl`` (left) facet patches lie at +Y).
+2. myo-sim thoracic meshes T1-T12, lumbar1 and femurs placed by their MuJoCo bodies
+   (``scene/myobody_skeleton_decor.xml``); OpenSim frame (+X anterior, +Y up, +Z right) -> RAS axes, mm.
+3. Thoracic levels: the isotropically remeshed Remus L1 is warped onto each myo-sim thoracic mesh by a
+   thin-plate spline through 15 landmarks found by the same geometric rules on both (8 corners of the
+   vertebral-body box, spinous tip, transverse-process tips, superior/inferior articular-process tips;
+   :func:`spinecohort.anatomy.landmark_rules.vertebra_landmarks`), in each mesh's own frame.  The warped
+   level is then placed by the myo-sim posture carried onto the Remus column: the similarity that takes
+   myo-sim lumbar1's landmarks onto Remus L1's.  Each thoracic vertebra keeps the myo-sim size times
+   ``--thoracic-scale`` about its own centre (so that T12's body width matches Panjabi 1991's 39.2 mm).
+4. Femoral heads: the myo-sim femurs cut 45 mm below the head centre, smoothed (Loop subdivision) and
+   placed with the head centre at the centre of the sphere fitted to the Remus acetabulum, scaled so the
+   head radius is the acetabular radius minus ``--joint-space`` (cartilage gap); the head cap is then
+   projected exactly onto that sphere.
+5. Isotropic remeshing (ACVD) at ``--edge-vertebra`` / ``--edge-sacrum`` / ``--edge-pelvis`` /
+   ``--edge-femur`` mm; every part checked closed, manifold and free of self-intersections.
+6. Labels and landmarks (:mod:`spinecohort.anatomy.labeling`) and the npz write.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from spinecohort.anatomy.assemble import BODY_TOLERANCE_MM, assemble, inside_or_near
+from spinecohort.anatomy.contacts import open_disc_spaces, push_out
+from spinecohort.anatomy.landmark_rules import similarity_from_points, vertebra_landmarks
+from spinecohort.anatomy.reference import save_reference
+from spinecohort.anatomy.surface import (
+    check_surface,
+    intersections_between,
+    from_polydata,
+    remesh_isotropic,
+    self_intersections,
+    sphere_fit,
+    to_polydata,
+    tps_warp,
+)
+
+REMUS_DIR = "hybrid_LSS_model/src/artisynth/models/passiveComponents_PlosOne/geometry/RB"
+REMUS_TO_RAS = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+OSIM_TO_RAS = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def remus_mesh(git_dir: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """One Remus OBJ in RAS mm."""
+    text = subprocess.run(
+        ["git", "-C", git_dir, "show", f"HEAD:{REMUS_DIR}/{name}.obj"], check=True, capture_output=True
+    ).stdout
+    tmp = Path("/tmp") / f"remus_{name}.obj"
+    tmp.write_bytes(text)
+    v, f = from_polydata(pv.read(tmp).triangulate().clean())
+    return 1000.0 * v @ REMUS_TO_RAS.T, f
+
+
+def myo_placements(models: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """mesh name -> (R (3, 3), t (3,) m) of every geom in the skeleton root frame (OpenSim axes).
+
+    The bodies of this file carry positions only; the geoms carry ``pos`` and a rotation about the body z
+    axis (``euler`` or ``quat``), which is all this reader accepts."""
+    root = ET.parse(Path(models) / "scene" / "myobody_skeleton_decor.xml").getroot()
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def walk(body, origin):
+        for child in body:
+            if child.tag == "geom" and child.get("mesh"):
+                pos = np.array([float(x) for x in child.get("pos", "0 0 0").split()])
+                if child.get("quat"):
+                    w, x, y, z = (float(a) for a in child.get("quat").split())
+                    rot = Rotation.from_quat([x, y, z, w]).as_matrix()
+                else:
+                    ex, ey, ez = (float(a) for a in child.get("euler", "0 0 0").split())
+                    if ex or ey:
+                        raise ValueError(f"geom {child.get('mesh')}: only rotations about z are read")
+                    rot = Rotation.from_euler("z", ez).as_matrix()
+                out[child.get("mesh")] = (rot, origin + pos)
+            elif child.tag == "body":
+                pos = np.array([float(x) for x in child.get("pos", "0 0 0").split()])
+                if child.get("quat") or (child.get("euler") and child.get("name") != "skeleton_decor_root"):
+                    raise ValueError(f"body {child.get('name')}: rotated bodies are not read")
+                walk(child, origin + (pos if child.get("name") != "skeleton_decor_root" else 0.0))
+
+    walk(root, np.zeros(3))
+    return out
+
+
+def myo_mesh(models: str, name: str, placement=None) -> tuple[np.ndarray, np.ndarray]:
+    """A myo-sim mesh in RAS axes, mm: in its own body frame, or placed (``placement`` = (R, t))."""
+    v, f = from_polydata(pv.read(Path(models) / "meshes" / f"{name}.stl").clean())
+    if placement is not None:
+        rot, t = placement
+        v = v @ rot.T + t
+    return 1000.0 * v @ OSIM_TO_RAS.T, f
+
+
+def thoracic_levels(args, l1_v, l1_f, log):
+    """T1..T12: the remeshed Remus L1 warped onto each myo-sim level, placed on the Remus column and
+    remeshed; also the warped L1 vertices of each level (the carriers of L1's labels)."""
+    place = myo_placements(args.myo_models)
+    src = vertebra_landmarks(l1_v)
+    # the myo-sim posture carried onto Remus: similarity from myo lumbar1 (placed) to Remus L1
+    lum_raw, _ = myo_mesh(args.myo_models, "lumbar1")
+    lum_placed, _ = myo_mesh(args.myo_models, "lumbar1", place["lumbar1"])
+    rl, _, tl = similarity_from_points(lum_raw, lum_placed, with_scale=False)  # same vertices: exact
+    rot, scale, trans = similarity_from_points(vertebra_landmarks(lum_raw) @ rl.T + tl, src)
+    log["myo_to_remus_scale"] = scale
+    out, carriers = {}, {}
+    for k in range(1, 13):
+        name = f"thoracic{k}_s"
+        raw, _ = myo_mesh(args.myo_models, name)
+        placed, _ = myo_mesh(args.myo_models, name, place[name])
+        tgt_raw = vertebra_landmarks(raw)
+        # an interpolating spline folds the surface where the rules' landmarks of the coarse myo-sim mesh
+        # disagree (T1, T2): smooth it until the warped surface has no self-intersection
+        for smoothing in (0.0, 3.0, 10.0, 30.0, 100.0, 300.0):
+            warped = tps_warp(src, tgt_raw, smoothing=smoothing)(l1_v)
+            if self_intersections(warped, l1_f) == 0:
+                break
+        log.setdefault("thoracic_tps_smoothing", {})[f"T{k}"] = smoothing
+        # raw -> placed is rigid (R_k, t_k); fit it from the landmark vertices, then the similarity to Remus
+        rk, _, tk = similarity_from_points(raw, placed, with_scale=False)
+        centre = 0.5 * (tgt_raw[:8].min(0) + tgt_raw[:8].max(0))  # body-box centre
+        size = args.t12_body_width_mm / np.ptp(vertebra_landmarks(myo_mesh(args.myo_models, "thoracic12_s")[0])[:8, 0])
+        local = centre + (size / scale) * (warped - centre)  # the shape at `size` x myo-sim after the similarity
+        world = scale * (local @ rk.T + tk) @ rot.T + trans
+        log["thoracic_size_factor"] = size
+        carriers[f"T{k}"] = world
+        out[f"T{k}"] = remesh_isotropic(world, l1_f, args.edge_vertebra)
+    return out, carriers
+
+
+def acetabulum_centre(points: np.ndarray, normals: np.ndarray, side: float) -> tuple[np.ndarray, float]:
+    """Centre and radius of one acetabular cup (``side`` -1 left / +1 right) of the hip-bone surface.
+
+    Hough vote: on a concave spherical cup every outward surface normal points at the centre, so the points
+    ``p + r n`` for the right r pile up there; the densest pile over r = 20..32 mm seeds a sphere fit to the
+    vertices that face it."""
+    sel = np.flatnonzero(side * points[:, 0] > 40.0)
+    p, n = points[sel], normals[sel]
+    best = (-1, None)
+    for r in np.arange(20.0, 32.5, 1.0):
+        cand = p + r * n
+        counts = np.array([len(x) for x in cKDTree(cand).query_ball_point(cand, 2.0)])
+        k = int(np.argmax(counts))
+        if counts[k] > best[0]:
+            best = (int(counts[k]), cand[k])
+    c = best[1]
+    for _ in range(3):
+        d = np.linalg.norm(c - p, axis=1)
+        facing = np.sum(n * (c - p), axis=1) > 0.85 * d
+        r_est = np.median(d[facing & (d < 35.0)])
+        cup = facing & (np.abs(d - r_est) < 3.0)
+        c, r = sphere_fit(p[cup])
+    return c, r
+
+
+def femoral_head(args, side: str, centre: np.ndarray, radius: float, log) -> tuple[np.ndarray, np.ndarray]:
+    """Proximal femur (head, neck, trochanters) of myo-sim, its head made an exact sphere of ``radius`` at
+    ``centre``; cut ``--femur-cut-mm`` below the head centre and closed."""
+    place = myo_placements(args.myo_models)
+    name = f"{'l' if side == 'L' else 'r'}_femur"
+    v, f = myo_mesh(args.myo_models, name)  # femur body frame: origin at the hip-joint centre
+    mesh = to_polydata(v, f).clip_closed_surface(normal=(0.0, 0.0, 1.0), origin=(0.0, 0.0, -args.femur_cut_mm))
+    mesh = mesh.triangulate().clean().subdivide(2, "loop")
+    v, f = from_polydata(mesh)
+    lateral = 1.0 if side == "R" else -1.0
+    cap0 = (np.linalg.norm(v, axis=1) < 26.0) & (v[:, 2] > -5.0) & (lateral * v[:, 0] < 5.0)
+    c0, r0 = sphere_fit(v[cap0])
+    v = (v - c0) * (radius / r0)
+    v, f = remesh_isotropic(v, f, args.edge_femur)
+    d = np.linalg.norm(v, axis=1)
+    # the head cap: on the sphere within 1.5 mm and on the side away from the neck (the neck runs laterally)
+    head = (np.abs(d - radius) < 1.5) & (v @ np.array([lateral, 0.0, -0.3]) < 0.35 * radius)
+    v[head] *= (radius / d[head])[:, None]
+    log[f"femur_{side}"] = {"myo_head_radius_mm": r0, "radius_mm": radius, "head_vertices": int(head.sum())}
+    del place
+    return v + centre, f, np.flatnonzero(head)
+
+
+def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -> None:
+    """Open the thoracic disc spaces, then push every overlapping articular surface out of its partner
+    (:mod:`spinecohort.anatomy.contacts`); parts and carriers are updated in place."""
+    l1_body = inside_or_near(parts["L1"][0], *bodies["L1"], BODY_TOLERANCE_MM)
+    column = [f"T{k}" for k in range(1, 13)] + ["L1"]
+    masks = [l1_body[cKDTree(carriers[lv]).query(parts[lv][0])[1]] for lv in column[:-1]] + [l1_body]
+    pts = [parts[lv][0].copy() for lv in column]
+    before = [p[0].copy() for p in pts]
+    log["thoracic_min_body_gap_mm"] = open_disc_spaces(pts, masks, args.min_disc_mm)
+    for lv, p, b in zip(column, pts, before):
+        carriers.get(lv, p)[:] += p[0] - b  # the same translation for the label carrier
+        parts[lv] = (p, parts[lv][1])
+    names = column + ["L2", "L3", "L4", "L5", "S1"]
+    moved = {}
+    for upper, lower in zip(names, names[1:]):
+        va, left = push_out(parts[upper], parts[lower], args.joint_gap_mm)
+        key = upper
+        if left:  # a thin process of the lower bone through the upper one: move the lower one instead
+            vb, left_b = push_out(parts[lower], parts[upper], args.joint_gap_mm)
+            if left_b < left:
+                va, left, key = vb, left_b, lower
+        moved[f"{upper}-{lower}"] = {
+            "moved": key,
+            "vertices": int(np.sum(np.any(va != parts[key][0], axis=1))),
+            "left": left,
+        }
+        parts[key] = (va, parts[key][1])
+    for other in ("S1", "femur_L", "femur_R"):
+        # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur
+        va, left = push_out(parts["pelvis"], parts[other], args.joint_gap_mm)
+        moved[f"pelvis-{other}"] = {
+            "moved": "pelvis",
+            "vertices": int(np.sum(np.any(va != parts["pelvis"][0], axis=1))),
+            "left": left,
+        }
+        parts["pelvis"] = (va, parts["pelvis"][1])
+    log["separation"] = moved
+    for k, c in moved.items():
+        print(f"separate {k:16s}", json.dumps(c), flush=True)
+
+
+def pair_checks(parts: dict) -> dict:
+    """Neighbouring bones: intersecting triangle pairs and the smallest vertex-to-vertex gap (mm)."""
+    names = [f"T{k}" for k in range(1, 13)] + [f"L{k}" for k in range(1, 6)] + ["S1"]
+    pairs = list(zip(names, names[1:])) + [("S1", "pelvis"), ("femur_L", "pelvis"), ("femur_R", "pelvis")]
+    out = {}
+    for a, b in pairs:
+        gap = float(cKDTree(parts[a][0]).query(parts[b][0])[0].min())
+        out[f"{a}-{b}"] = {"intersections": intersections_between(*parts[a], *parts[b]), "min_gap_mm": gap}
+    return out
+
+
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--remus-git", required=True, help="git dir of RemusR9/artisynth_lumbosacralSpineModel")
+    ap.add_argument("--myo-models", required=True, help="myo_sim/models of the unpacked myo-sim 0.2.4 wheel")
+    ap.add_argument("--out", default="src/spinecohort/data/reference/reference_spine.npz")
+    ap.add_argument("--edge-vertebra", type=float, default=2.2, help="target edge length on the vertebrae, mm")
+    ap.add_argument("--edge-sacrum", type=float, default=3.5)
+    ap.add_argument("--edge-pelvis", type=float, default=5.0)
+    ap.add_argument("--edge-femur", type=float, default=3.0)
+    ap.add_argument("--t12-body-width-mm", type=float, default=39.2, help="Panjabi 1991 T12 endplate width")
+    ap.add_argument("--joint-space-mm", type=float, default=2.5, help="acetabular radius - head radius")
+    ap.add_argument("--femur-cut-mm", type=float, default=45.0)
+    ap.add_argument("--min-disc-mm", type=float, default=3.0, help="closest body-to-body distance, thoracic")
+    ap.add_argument("--joint-gap-mm", type=float, default=0.5, help="clearance of pushed-apart joint surfaces")
+    return ap.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    log: dict = {"args": vars(args)}
+    parts: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    bodies: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for k in range(1, 6):
+        v, f = remus_mesh(args.remus_git, f"L{k}_Schrumpfverpacken")
+        parts[f"L{k}"] = remesh_isotropic(v, f, args.edge_vertebra)
+        bodies[f"L{k}"] = remus_mesh(args.remus_git, f"L{k}_body")
+    bodies["S1"] = remus_mesh(args.remus_git, "S1_body")
+    facets = {
+        f"{lv}_{s}": remus_mesh(args.remus_git, f"{lv}_PD{s[0]}_a")
+        for lv in ("L2", "L3", "L4", "L5", "S1")
+        for s in ("left", "right")
+    }
+    thoracic, carriers = thoracic_levels(args, *parts["L1"], log)
+    parts.update(thoracic)
+    v, f = remus_mesh(args.remus_git, "S1_Schrumpfverpacken")
+    parts["S1"] = remesh_isotropic(v, f, args.edge_sacrum)
+    v, f = remus_mesh(args.remus_git, "Pelvis")
+    parts["pelvis"] = remesh_isotropic(v, f, args.edge_pelvis)
+    from spinecohort.anatomy.labeling import vertex_normals
+
+    pv_, pf_ = parts["pelvis"]
+    heads = {}
+    for side, sgn in (("L", -1.0), ("R", 1.0)):
+        c, r = acetabulum_centre(pv_, vertex_normals(pv_, pf_), sgn)
+        log[f"acetabulum_{side}"] = {"centre_mm": c.round(2).tolist(), "radius_mm": r}
+        hv, hf, cap = femoral_head(args, side, c, r - args.joint_space_mm, log)
+        parts[f"femur_{side}"] = (hv, hf)
+        heads[side] = cap
+    separate_bones(args, parts, carriers, bodies, log)
+    log["checks"] = {k: check_surface(*vf) for k, vf in parts.items()}
+    for k, c in log["checks"].items():
+        print(f"{k:9s}", json.dumps(c), flush=True)
+    log["pairs"] = pair_checks(parts)
+    for k, c in log["pairs"].items():
+        print(f"{k:16s}", json.dumps(c), flush=True)
+    ref = assemble(parts, carriers, bodies, facets, heads, log)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_reference(ref, out)
+    print(f"wrote {out}: {len(ref.vertices)} vertices, {len(ref.faces)} triangles, {out.stat().st_size / 1e6:.2f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
