@@ -28,16 +28,18 @@ import numpy as np
 _SAME_MM = 1e-6
 
 
-def line_crossings(triangles: np.ndarray, origins: np.ndarray, direction: np.ndarray) -> list[np.ndarray]:
+def line_crossings(
+    triangles: np.ndarray, origins: np.ndarray, direction: np.ndarray, with_faces: bool = False
+) -> list[np.ndarray] | list[tuple[np.ndarray, np.ndarray]]:
     """Sorted line parameters (mm along the unit ``direction``) where each line ``origin + t d`` crosses the
-    triangles ((F, 3, 3) mm); one array per origin ((R, 3) mm).  Moller-Trumbore, edges inclusive,
-    coincident crossings merged."""
+    triangles ((F, 3, 3) mm); one array per origin ((R, 3) mm), or (parameters, crossed triangle indices)
+    with ``with_faces``.  Moller-Trumbore, edges inclusive, coincident crossings merged."""
     d = np.asarray(direction, float)
     d = d / np.linalg.norm(d)
     v0, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
     p = np.cross(d, e2)  # (F, 3)
     det = np.einsum("ij,ij->i", e1, p)
-    ok = np.abs(det) > 1e-12
+    ok = np.flatnonzero(np.abs(det) > 1e-12)
     v0, e1, e2, p, inv = v0[ok], e1[ok], e2[ok], p[ok], 1.0 / det[ok]
     s = np.asarray(origins, float)[:, None, :] - v0[None]  # (R, F, 3)
     u = np.einsum("rfj,fj->rf", s, p) * inv
@@ -47,10 +49,12 @@ def line_crossings(triangles: np.ndarray, origins: np.ndarray, direction: np.nda
     hit = (u >= 0) & (v >= 0) & (u + v <= 1)
     out = []
     for row_t, row_hit in zip(t, hit):
-        ts = np.sort(row_t[row_hit])
+        order = np.argsort(row_t[row_hit])
+        ts, faces = row_t[row_hit][order], ok[row_hit][order]
         if ts.size:
-            ts = ts[np.r_[True, np.diff(ts) > _SAME_MM]]
-        out.append(ts)
+            keep = np.r_[True, np.diff(ts) > _SAME_MM]
+            ts, faces = ts[keep], faces[keep]
+        out.append((ts, faces) if with_faces else ts)
     return out
 
 
@@ -72,16 +76,17 @@ def first_chord_ahead(ts: np.ndarray) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class Isthmus:
-    """A pedicle's isthmus (mm, deg): width across the pedicle axis, height, the transverse chord it came
-    from, the medial angle of the pedicle axis to the mid-sagittal plane, its centre (frame coordinates) and
-    the medial wall's transverse coordinate there."""
+    """A pedicle's isthmus (mm, deg): its width (the shortest chord), height (the shortest vertical chord),
+    the angle the shortest chord's line is turned anteriorly from the transverse axis (the pedicle's
+    convergence), its centre (frame coordinates), and the medial wall's distance from the mid-line along the
+    transverse lines from the mid-line at ``positions_mm`` (their anterior coordinates; nan: no pedicle)."""
 
     width: float
     height: float
-    chord: float
     medial_angle_deg: float
     centre: np.ndarray
-    medial_wall: float
+    positions_mm: np.ndarray
+    medial_wall_mm: np.ndarray
 
 
 def canal_midline(
@@ -108,6 +113,36 @@ def canal_midline(
     )
 
 
+def _scan(triangles, direction, a_all, height_mm, reach_mm, min_chord_mm, wall_cos):
+    """Per coronal position: (entry, exit) of the first chord along ``direction`` from the mid-line, and the
+    (low, high) superior coordinates of the vertical chord through its middle, re-centred twice; nan where the
+    line starts inside bone, meets nothing within ``reach_mm``, grazes a wall (chord < ``min_chord_mm``) or
+    cuts a corner (a crossed face whose normal is farther than arccos(``wall_cos``) from the transverse axis:
+    a pedicle is entered through its medial wall and left through its lateral wall)."""
+    up = np.array([0.0, 0.0, 1.0])
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    lateral_cos = np.abs(normals[:, 1]) / np.maximum(np.linalg.norm(normals, axis=1), 1e-30)
+    z = np.full(a_all.size, float(height_mm))
+    rows = np.full((a_all.size, 4), np.nan)
+    for _ in range(3):
+        starts = np.stack([a_all, np.zeros_like(a_all), z], 1)
+        lat = np.full((a_all.size, 2), np.nan)
+        for i, (ts, faces) in enumerate(line_crossings(triangles, starts, direction, with_faces=True)):
+            k = int(np.searchsorted(ts, 0.0))
+            if k % 2 == 0 and k + 1 < len(ts) and min(lateral_cos[faces[k]], lateral_cos[faces[k + 1]]) >= wall_cos:
+                lat[i] = ts[k], ts[k + 1]
+        lat[(lat[:, 0] > reach_mm) | (lat[:, 1] - lat[:, 0] < min_chord_mm)] = np.nan
+        # a re-centred height whose line starts inside bone (the body, a lamina) keeps the previous section
+        good = np.isfinite(lat[:, 0])
+        if not good.any():
+            break
+        mids = starts[good] + 0.5 * (lat[good, 0] + lat[good, 1])[:, None] * direction
+        vert = np.array([chord_through(ts) for ts in line_crossings(triangles, mids, up)])
+        rows[good] = np.column_stack([lat[good], z[good, None] + vert])
+        z = np.where(np.isfinite(rows[:, 2]), 0.5 * (rows[:, 2] + rows[:, 3]), z)
+    return rows
+
+
 def pedicle_isthmus(
     triangles: np.ndarray,
     side: float,
@@ -116,51 +151,47 @@ def pedicle_isthmus(
     a_back: float,
     step_mm: float = 0.5,
     reach_mm: float = 40.0,
-    fit_mm: float = 3.0,
+    angles_deg: tuple[float, ...] = (0.0, -10.0, 10.0, 20.0, 30.0, 40.0),
+    min_chord_mm: float = 2.0,
+    wall_cos: float = 0.5,
 ) -> Isthmus:
     """The isthmus of the pedicle on ``side`` (+1 right, -1 left) (module docstring).
 
     ``height_mm``: a first guess of the pedicle's mid-height; coronal positions ``a`` run every ``step_mm``
-    from ``a_wall`` (the posterior body wall) back to ``a_back`` (the lamina's inner face); a transverse chord
-    counts only when it starts within ``reach_mm`` of the mid-line; the medial angle is fitted over the chord
-    midpoints within ``fit_mm`` of the isthmus."""
-    a_all = np.arange(a_wall, a_back, -abs(step_mm))
+    from ``a_wall`` (the posterior body wall) back to ``a_back``; the lines from the mid-line run laterally,
+    turned anteriorly by each of ``angles_deg`` (a pedicle converging anteriorly at the angle theta is crossed
+    at its true width by the line turned by theta); a chord counts when it starts within ``reach_mm`` of the
+    mid-line, is at least ``min_chord_mm`` long (shorter ones graze the posterior body wall) and crosses two
+    faces within arccos(``wall_cos``) of facing transversely (`_scan`)."""
+    a_all = np.arange(a_wall - step_mm, a_back, -abs(step_mm))
     if a_all.size < 2:
         raise ValueError(f"no room for a pedicle between the body wall (a = {a_wall:.1f} mm) and the lamina")
-    right = np.array([0.0, float(np.sign(side)), 0.0])
-    z = np.full(a_all.size, float(height_mm))
-    rows = np.full((a_all.size, 4), np.nan)  # r_in, r_out, s_lo, s_hi
-    for _ in range(3):
-        starts = np.stack([a_all, np.zeros_like(a_all), z], 1)
-        lat = np.array([first_chord_ahead(ts) for ts in line_crossings(triangles, starts, right)])
-        lat[lat[:, 0] > reach_mm] = np.nan
-        # a re-centred height whose line starts inside bone (the body, a lamina) keeps the previous section
-        good = np.isfinite(lat[:, 0])
-        if not good.any():
-            break
-        r_mid = np.sign(side) * 0.5 * (lat[good, 0] + lat[good, 1])
-        vert_o = np.stack([a_all[good], r_mid, z[good]], 1)
-        vert = np.array([chord_through(ts) for ts in line_crossings(triangles, vert_o, np.array([0.0, 0.0, 1.0]))])
-        rows[good] = np.column_stack([lat[good], z[good, None] + vert])
-        z = np.where(np.isfinite(rows[:, 2]), 0.5 * (rows[:, 2] + rows[:, 3]), z)
-    if not np.isfinite(rows[:, 0]).any():
+    sign = float(np.sign(side))
+    best = None
+    heights = []
+    medial = np.full(a_all.size, np.nan)
+    for phi in angles_deg:
+        direction = np.array([np.sin(np.radians(phi)), sign * np.cos(np.radians(phi)), 0.0])
+        rows = _scan(triangles, direction, a_all, height_mm, reach_mm, min_chord_mm, wall_cos)
+        valid = np.isfinite(rows).all(axis=1)
+        if not valid.any():
+            continue
+        heights.append(np.min(rows[valid, 3] - rows[valid, 2]))
+        # the medial wall as a transverse line meets it; turned lines fill the positions it misses
+        wall = np.where(valid, rows[:, 0] * np.cos(np.radians(phi)), np.nan)
+        medial = np.where(np.isfinite(medial), medial, wall)
+        chord = rows[:, 1] - rows[:, 0]
+        k = int(np.flatnonzero(valid)[np.argmin(chord[valid])])
+        if best is None or chord[k] < best[0]:
+            start = np.array([a_all[k], 0.0, 0.5 * (rows[k, 2] + rows[k, 3])])
+            best = (chord[k], phi, start + 0.5 * (rows[k, 0] + rows[k, 1]) * direction, k)
+    if best is None:
         raise ValueError(f"no pedicle found on side {side:+.0f}: no bone lateral to the canal")
-    rows = np.column_stack([rows, rows[:, 1] - rows[:, 0]])
-    valid = np.isfinite(rows).all(axis=1)
-    if not valid.any():
-        raise ValueError(f"no pedicle section found on side {side:+.0f}")
-    k = int(np.flatnonzero(valid)[np.argmin(rows[valid, 4])])
-    height = float(np.min(rows[valid, 3] - rows[valid, 2]))
-    r_centre = np.sign(side) * 0.5 * (rows[:, 0] + rows[:, 1])
-    near = valid & (np.abs(a_all - a_all[k]) <= fit_mm)
-    slope = np.polyfit(a_all[near], r_centre[near], 1)[0] if near.sum() >= 3 else 0.0
-    theta = float(np.degrees(np.arctan(abs(slope))))
-    centre = np.array([a_all[k], r_centre[k], 0.5 * (rows[k, 2] + rows[k, 3])])
     return Isthmus(
-        width=float(rows[k, 4] * np.cos(np.radians(theta))),
-        height=height,
-        chord=float(rows[k, 4]),
-        medial_angle_deg=theta,
-        centre=centre,
-        medial_wall=float(np.sign(side) * rows[k, 0]),
+        width=float(best[0]),
+        height=float(min(heights)),
+        medial_angle_deg=float(best[1]),
+        centre=best[2],
+        positions_mm=a_all,
+        medial_wall_mm=medial,
     )

@@ -300,7 +300,8 @@ def arch_dimensions(
     ``zone`` of the canal depth (behind it the articular pillar, not the pedicle, bounds the canal).  Canal
     depth: the mid-sagittal gap between the posterior body wall and the lamina's inner face at the pedicles'
     mid-height (or the nearest height where the mid-line meets a lamina, `isthmus.canal_midline`); canal
-    width: the transverse distance between the two pedicles' medial walls at their isthmuses."""
+    width: the largest transverse distance between the two pedicles' medial walls over the coronal positions
+    where both bound the canal (the canal's transverse diameter between the pedicles, as CT measures it)."""
     q = np.asarray(local_mm, float)
     tri = vertebra_triangles(q, faces, parts)
     n = len(q)
@@ -309,14 +310,17 @@ def arch_dimensions(
     a_wall, a_lam, _ = isthmus.canal_midline(tri, np.array([0.0, 0.0, z0]))
     a_back = a_wall - zone * (a_wall - a_lam)
     out: dict[str, float] = {}
-    walls = {}
+    walls = []
     for side, sign in (("left", -1.0), ("right", 1.0)):
         ist = isthmus.pedicle_isthmus(tri, sign, z0, a_wall, a_back)
         out[f"pedicle_width_{side}"], out[f"pedicle_height_{side}"] = ist.width, ist.height
-        walls[side] = ist.medial_wall
+        walls.append(ist.medial_wall_mm)
     for k in ("pedicle_width", "pedicle_height"):
         out[k] = 0.5 * (out[f"{k}_left"] + out[f"{k}_right"])
-    out["canal_width"] = walls["right"] - walls["left"]
+    both = walls[0] + walls[1]
+    if not np.isfinite(both).any():
+        raise ValueError("no coronal position where transverse lines from the canal meet both pedicles")
+    out["canal_width"] = float(np.nanmax(both))
     out["canal_depth"] = a_wall - a_lam
     return out
 
