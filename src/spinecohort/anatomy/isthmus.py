@@ -7,13 +7,14 @@ vertebra frame (anterior, right, superior; mm), on the vertebra's own closed sur
 * **canal** (mid-sagittal line at a given height): from the body centre posteriorly, the body's exit is the
   posterior body wall, the next entry the inner face of the lamina; the gap between them is the canal depth;
 * **pedicle** of one side: for every coronal position ``a`` between the posterior body wall and the lamina,
-  a transverse line from the canal mid-line outwards enters the bone at the pedicle's medial wall and leaves
-  it at its lateral wall (the transverse chord), and the vertical line through that chord's middle gives the
-  pedicle's height chord; the two are re-centred on each other twice, so the lines pass through the pedicle's
-  centre.  The **isthmus** is the position of least transverse chord (the pedicle width of an axial CT
-  slice), the pedicle height the least vertical chord (that of a sagittal slice).  A pedicle converging anteriorly at
-  the medial angle theta is cut obliquely by a transverse line: its width across its own axis is the chord x
-  cos(theta), theta being the slope of the chord midpoints along ``a`` near the isthmus.
+  a line from the canal mid-line outwards, turned anteriorly by an angle phi, enters the bone at the
+  pedicle's medial wall and leaves it at its lateral wall (the pedicle chord), and the vertical line through
+  that chord's middle gives the pedicle's height chord; the two are re-centred on each other twice, so the
+  lines pass through the pedicle's centre.  A pedicle converging anteriorly at the angle theta is crossed at
+  its true width by the line turned by phi = theta and more obliquely (longer, width / cos(phi - theta)) by
+  every other line, so the **isthmus width** is the shortest chord over positions and angles (the caliper
+  at the narrowest place), the **height** the shortest vertical chord (the pedicle height of a sagittal
+  slice), the **canal width** the largest distance between the two medial walls met by transverse lines.
 
 The labels play no part: a thin labeled strip at the pedicle base measures the same pedicle as a whole one.
 """

@@ -12,9 +12,10 @@ endplate_depth_upper       mm     antero-posterior depth of the superior endplat
 endplate_depth_lower       mm     the same for the inferior endplate (EPDl)
 body_height_anterior       mm     superior to inferior rim at the anterior mid-line (VBHa)
 body_height_posterior      mm     superior to inferior rim at the posterior mid-line (VBHp)
-pedicle_width[_left/right] mm     width of the pedicle's narrowest section, transverse direction (PDW)
-pedicle_height[...]        mm     height of that section, cranio-caudal direction (PDH)
-canal_width                mm     gap between the medial faces of the two pedicles (SCW)
+pedicle_width[_left/right] mm     width of the pedicle at its isthmus, across the pedicle in the transverse
+                                  plane: the shortest chord from the medial to the lateral wall (PDW)
+pedicle_height[...]        mm     the pedicle's shortest cranio-caudal chord (PDH)
+canal_width                mm     largest transverse distance between the medial walls of the pedicles (SCW)
 canal_depth                mm     posterior body wall to the inner face of the lamina, mid-line (SCD)
 spinous_length             mm     inner face of the lamina at the mid-line to the spinous tip (SPL)
 facet_<sup|inf>_transverse deg    angle between the facet plane's trace in the transverse plane and the
@@ -28,6 +29,8 @@ that pool sides.  The facet angles follow the plane-angle idea of Panjabi 1993 b
 table above (folded into 0..90 deg); Panjabi's own angle origins are not reproduced, so facet orientation is
 compared with ranges stated in these conventions (Masharawi 2004: facet to the mid-sagittal plane).
 
+Pedicles and canal are measured by chords of the closed bone surface (`spinecohort.anatomy.isthmus`), so a
+labeled pedicle region that covers only part of the pedicle does not change them.
 Everything is measured in the vertebra's own frame (`vertebra_frame`): superior = the mean normal of the two
 endplate planes, anterior = body centre minus canal centre (or a hint for a body alone), right = anterior x
 superior.  The part labels are the region names of ``spinecohort.anatomy.labels`` (``PARTS``).
