@@ -87,3 +87,20 @@ def test_markers_are_required():
         T.replace_between_markers("no table here", "| a |\n")
     page = f"head\n{T.START}\nold\n{T.END}\ntail\n"
     assert T.replace_between_markers(page, "new\n") == f"head\n{T.START}\nnew\n{T.END}\ntail\n"
+
+
+def test_measure_spine_reads_the_reference_labels(measured):
+    """`measure_spine` on the whole reference surface (region and level labels, rim bands) gives the values of
+    `measure_reference` at a thoracic level with a saddle-shaped rim (T10) and a lumbar one."""
+    from spinecohort.anatomy.labels import REGIONS
+    from spinecohort.anatomy.morphometry import measure_spine
+    from spinecohort.anatomy.reference import load_reference
+
+    ref = load_reference()
+    ends = {lv: (ref.landmarks.endplate_sup[lv], ref.landmarks.endplate_inf[lv]) for lv in ("T10", "L4")}
+    got = measure_spine(ref.vertices, ref.faces, ref.region, ref.level, REGIONS, LEVELS, ends)
+    got = got.set_index(["level", "quantity"])["value"]
+    want = measured.set_index(["level", "quantity"])["value"]
+    for key in got.index:
+        if "facet" not in key[1]:  # measure_reference uses the facet articular surfaces, measure_spine the regions
+            assert got[key] == pytest.approx(want[key], abs=1e-9), key
