@@ -55,8 +55,8 @@ from spinecohort.anatomy.landmark_rules import similarity_from_points, vertebra_
 from spinecohort.anatomy.reference import save_reference
 from spinecohort.anatomy.surface import (
     check_surface,
-    intersections_between,
     from_polydata,
+    intersections_between,
     remesh_isotropic,
     self_intersections,
     sphere_fit,
