@@ -39,7 +39,7 @@ DEFAULTS = {
         "max_iter": 100,
         "tol": 1.0e-5,
         "downsample_radius_mm": 1.5,
-        "layers": 1,
+        "layers": 3,
     },
     "bound_mean_mm": 0.5,
     "min_assigned_fraction": 0.6,
