@@ -99,14 +99,21 @@ def test_ssm_matches_the_corresponded_cohort(cohort, registered):
     assert np.degrees(np.arccos(min(cos, 1.0))) < 5.0
 
 
-def test_one_mesh_per_patient_gives_the_same_bones(cohort, folders, registered):
+def test_one_mesh_per_patient_is_split_into_the_right_bones(cohort, folders):
+    # One file holding every bone: its connected components are assigned to bones after the reference is
+    # placed.  The truth of each component: the bone of the generator's vertex nearest to it.
+    from scipy.spatial import cKDTree
+
     c, ref = cohort
     pid = c.ids[0]
     pieces = read_patient(str(folders[1] / f"{pid}.stl"), pid, "per_patient", "mm")
     assert len(pieces) > len(BONES)  # vertebrae arrive as several components each
-    pts, rep = register_patient(ref, pieces, pid, named=False, params=PARAMS)
-    assert rep["mean_mm"].max() < 0.5
-    assert np.linalg.norm(pts - registered[0][0], axis=1).mean() < 0.2
+    placed = rc.place_reference(ref, np.concatenate([p.points for p in pieces]))
+    assigned = rc.assign_pieces(pieces, placed, ref.bone)
+    tree = cKDTree(c.vertices[0])
+    truth = [BONES[np.bincount(ref.bone[tree.query(p.points)[1]]).argmax()] for p in pieces]
+    assert [name for name, _ in assigned] == truth
+    assert min(frac for _, frac in assigned) > 0.6
 
 
 # ----------------------------------------------------------------------------------------------------------

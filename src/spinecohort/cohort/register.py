@@ -172,7 +172,7 @@ def place_reference(reference: LabeledReference, cloud: np.ndarray) -> np.ndarra
     return placed
 
 
-def _assign(pieces: list[BoneMesh], placed: np.ndarray, ref_bone: np.ndarray) -> list[tuple[str, float]]:
+def assign_pieces(pieces: list[BoneMesh], placed: np.ndarray, ref_bone: np.ndarray) -> list[tuple[str, float]]:
     """Bone each piece's points lie nearest to (on the placed reference) and the fraction that do."""
     tree = cKDTree(placed)
     out = []
@@ -221,7 +221,7 @@ def register_patient(
     t0 = time.process_time()
     placed = place_reference(reference, everything)
     t_place = time.process_time() - t0
-    assigned = _assign(pieces, placed, reference.bone)
+    assigned = assign_pieces(pieces, placed, reference.bone)
     by_bone: dict[str, list[BoneMesh]] = {}
     for piece, (name, frac) in zip(pieces, assigned):
         if named and name != piece.name:
@@ -273,7 +273,6 @@ def register_patient(
                 "back_mean_mm": _stats(to_reference)[0],
                 "back_p95_mm": _stats(to_reference)[1],
                 "back_max_mm": _stats(to_reference)[2],
-                "scale": float(res.layers[0].s),
                 "iterations": res.iterations,
                 "cpu_s": time.process_time() - t1,
                 "warnings": "; ".join(target.warnings),
