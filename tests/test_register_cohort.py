@@ -64,7 +64,7 @@ def test_written_folder_is_not_in_correspondence(cohort, folders):
 
 
 def test_registration_distance_per_bone(registered):
-    # Issue bar: <= 0.5 mm mean per bone, both ways (reference onto patient and back)
+    # The required accuracy: <= 0.5 mm mean per bone, both ways (reference onto patient and back)
     _, reports = registered
     for rep in reports:
         assert rep["mean_mm"].max() < 0.5, rep[["patient", "bone", "mean_mm"]]
@@ -79,7 +79,7 @@ def test_correspondence_and_parameters_match_the_truth(cohort, registered):
     # the generator's vertex i and the reference's vertex i are the same anatomical point
     assert err.mean() < 0.3 and np.percentile(err, 95) < 1.0
     measured = measure(pts, ref.landmarks)
-    # The issue's bar, 1 degree, for each of PI, PT, SS, LL (the measurement on the corresponded meshes
+    # The required accuracy, 1 degree, for each of PI, PT, SS, LL (the measurement on the corresponded meshes
     # reproduces the generator's values to 1e-6 degree, so this is the registration's error).  Measured on
     # these three patients, max |error| PI 0.54, PT 0.23, SS 0.62, LL 0.63 degrees (the endplate patches are
     # where a few tenths of a mm of sliding tilt a plane).
