@@ -67,9 +67,9 @@ def bone_of_file(stem: str, aliases: dict[str, str] | None = None) -> str | None
     if low in ("sacrum", "s1", "vertebrae_s1"):
         return "sacrum"
     for kind in ("hip", "femur"):
-        for sep in ("_",):
-            if low.startswith(kind + sep) and low[len(kind) + 1 :] in _SIDES:
-                return f"{kind}_{_SIDES[low[len(kind) + 1 :]]}"
+        side = low[len(kind) + 1 :]
+        if low.startswith(kind + "_") and side in _SIDES:
+            return f"{kind}_{_SIDES[side]}"
     return None
 
 

@@ -9,13 +9,15 @@ Per patient (:func:`register_patient`): the reference is placed on the patient b
 relative to each other between patients far more than they deform).  Each patient
 piece (a file or a connected component) is then assigned to the reference bone most of its points lie
 nearest to - a file named L5 that lies where L4 belongs is an error.  Finally each bone is registered on
-its own (similarity CPD, then BCPD) and the registered reference bones, in the reference's vertex order,
+its own (ICP with scale, then layered BCPD) and the registered reference bones, in the reference's vertex order,
 are the patient's corresponded surface.  Lengths in mm.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -67,8 +69,6 @@ class LabeledReference:
         return remap[self.faces[np.all(self.bone[self.faces] == BONES.index(name), axis=1)]]
 
     def save(self, path) -> None:
-        import json
-
         np.savez(
             path,
             points=self.points,
@@ -79,8 +79,6 @@ class LabeledReference:
 
     @classmethod
     def load(cls, path) -> LabeledReference:
-        import json
-
         with np.load(path, allow_pickle=False) as z:
             lm = Landmarks.from_dict(json.loads(str(z["landmarks_json"])))
             return cls(z["points"], z["faces"], z["bone"], lm)
@@ -193,10 +191,6 @@ def _require_all(found: set[str], patient: str, how: str) -> None:
         )
 
 
-def _stats(d: np.ndarray) -> tuple[float, float, float]:
-    return float(np.mean(d)), float(np.percentile(d, 95)), float(np.max(d))
-
-
 def register_patient(
     reference: LabeledReference,
     pieces: list[BoneMesh],
@@ -211,8 +205,6 @@ def register_patient(
     ``pieces``: the patient's bone meshes (``named=True``: their ``name`` is the bone, checked against
     where they lie) or unnamed connected components of one mesh (``named=False``: assigned here).  A bone
     of the reference the patient lacks is a :class:`BoneInputError` naming patient and bone."""
-    import time
-
     p = {**DEFAULTS, **(params or {})}
     bone_p = {**DEFAULTS["bone"], **p["bone"]}
     if named:
@@ -239,46 +231,10 @@ def register_patient(
         t1 = time.process_time()
         target = merge_bones(by_bone[name], name) if len(by_bone[name]) > 1 else by_bone[name][0]
         idx = reference.vertices_of(name)
-        src = placed[idx]
-        # the bone is placed already (ICP on the whole patient); ICP with scale on its own points finishes
-        # pose and size (BCPD's similarity step alone left a hip bone 3 % too large: 0.68 mm against 0.28).
-        # A CPD here cost two thirds of the time for the same result.
-        fit = reg.icp_rigid(src, target.points, scale=True)
-        res = reg.multilayer_register(
-            fit.transformed,
-            target.points,
-            bound=1e-9,  # every layer runs: the second refines the correspondence, not only the distance
-            max_layers=bone_p["layers"],
-            lam=bone_p["lam"],
-            beta=bone_p["beta"],
-            gamma=bone_p["gamma"],
-            K=bone_p["K"],
-            w=bone_p["w"],
-            max_iter=bone_p["max_iter"],
-            tol=bone_p["tol"],
-            downsample_radius=bone_p["downsample_radius_mm"],
-        )
-        out[idx] = res.deformed
-        ref_faces = reference.faces_of(name)
-        to_patient = reg.surface_distance(res.deformed, target.points, target.faces)
-        to_reference = reg.surface_distance(target.points, res.deformed, ref_faces)
-        rows.append(
-            {
-                "patient": patient,
-                "bone": name,
-                "n_reference": len(idx),
-                "n_patient": len(target.points),
-                "mean_mm": _stats(to_patient)[0],
-                "p95_mm": _stats(to_patient)[1],
-                "max_mm": _stats(to_patient)[2],
-                "back_mean_mm": _stats(to_reference)[0],
-                "back_p95_mm": _stats(to_reference)[1],
-                "back_max_mm": _stats(to_reference)[2],
-                "iterations": res.iterations,
-                "cpu_s": time.process_time() - t1,
-                "warnings": "; ".join(target.warnings),
-            }
-        )
+        out[idx] = register_bone(placed[idx], target, bone_p)
+        row = {"patient": patient, "bone": name, "n_reference": len(idx), "n_patient": len(target.points)}
+        row |= distance_row(out[idx], reference.faces_of(name), target)
+        rows.append(row | {"cpu_s": time.process_time() - t1, "warnings": "; ".join(target.warnings)})
     report = pd.DataFrame(rows)
     report.attrs["placement_cpu_s"] = t_place
     log.info(
@@ -291,6 +247,43 @@ def register_patient(
         report["mean_mm"].max(),
     )
     return out, report
+
+
+def register_bone(source: np.ndarray, target: BoneMesh, params: dict) -> np.ndarray:
+    """The placed reference bone ``source`` (mm) registered onto ``target``: ICP with scale, then
+    ``params['layers']`` BCPD layers (``params`` as the config's ``register.bone``)."""
+    # the bone is placed already (ICP on the whole patient); ICP with scale on its own points finishes
+    # pose and size (BCPD's similarity step alone left a hip bone 3 % too large: 0.68 mm against 0.28).
+    # A CPD here cost two thirds of the time for the same result.
+    fit = reg.icp_rigid(source, target.points, scale=True)
+    res = reg.multilayer_register(
+        fit.transformed,
+        target.points,
+        bound=1e-9,  # every layer runs: the later ones refine the correspondence, not only the distance
+        max_layers=params["layers"],
+        lam=params["lam"],
+        beta=params["beta"],
+        gamma=params["gamma"],
+        K=params["K"],
+        w=params["w"],
+        max_iter=params["max_iter"],
+        tol=params["tol"],
+        downsample_radius=params["downsample_radius_mm"],
+    )
+    return res.deformed
+
+
+def distance_row(registered: np.ndarray, faces: np.ndarray, target: BoneMesh) -> dict:
+    """Surface distance (mm) of the registered bone to the patient's and of the patient's points back to the
+    registered surface: mean, 95th percentile, max each."""
+    out = {}
+    for prefix, d in (
+        ("", reg.surface_distance(registered, target.points, target.faces)),
+        ("back_", reg.surface_distance(target.points, registered, faces)),
+    ):
+        out |= {f"{prefix}mean_mm": float(np.mean(d)), f"{prefix}p95_mm": float(np.percentile(d, 95))}
+        out[f"{prefix}max_mm"] = float(np.max(d))
+    return out
 
 
 def failures(report: pd.DataFrame, bound_mean_mm: float) -> list[str]:

@@ -29,8 +29,6 @@ def retriangulate(
     """The same surface with a different tessellation: every triangle split in four (midpoints: the
     surface is unchanged), then quadric decimation removes a random ``reduction`` share of the triangles
     (new vertex positions on the surface), then points and triangles are shuffled.  Mesh in mm."""
-    import pyvista as pv
-
     from spinecohort.mesh.vtk_mesh import surface
 
     fine = surface(points, faces).subdivide(1, subfilter="linear")
@@ -45,7 +43,6 @@ def retriangulate(
     out[perm] = pts[used]
     tri = remap[tri][rng.permutation(len(tri))]
     tri = np.roll(tri, int(rng.integers(3)), axis=1)  # a cyclic shift keeps each triangle's orientation
-    del pv
     return out, tri
 
 
