@@ -222,7 +222,7 @@ def register_patient(
                 f"{name} ({100 * frac:.0f} % of its points nearest to {name}): a mislabeled level?"
             )
         if frac < p["min_assigned_fraction"]:
-            piece.warnings.append(f"{piece.source}: only {100 * frac:.0f} % of the piece lies nearest to {name}")
+            piece.warnings.append(f"{piece.source} {piece.name}: only {100 * frac:.0f} % of it lies nearest to {name}")
         by_bone.setdefault(name, []).append(piece)
     _require_all(set(by_bone), patient, "no component lies at")
     out = np.empty_like(reference.points)
