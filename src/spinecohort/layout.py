@@ -47,6 +47,25 @@ class Layout:
     def cohort(self) -> str:
         return self.path("cohort", "cohort.npz")
 
+    # stage 1, a user folder: the labeled reference registered onto each patient (register.smk)
+    @property
+    def reference(self) -> str:
+        return self.path("registered", "reference.npz")
+
+    @property
+    def reference_landmarks(self) -> str:
+        return self.path("registered", "landmarks.json")
+
+    def registered_stl(self, patient: str) -> str:
+        return self.path("registered", f"{patient}.stl")
+
+    def registered_report(self, patient: str) -> str:
+        return self.path("registered", f"{patient}.csv")
+
+    @property
+    def registration_report(self) -> str:
+        return self.path("registered", "report.csv")
+
     # stage 2: SSM
     @property
     def aligned(self) -> str:
