@@ -59,7 +59,7 @@ def cohort_layout(config: dict) -> str:
 
 def patient_inputs(config: dict) -> dict[str, str]:
     """Patient ID -> its mesh file (per_patient, corresponded) or its folder of bone files (per_bone)."""
-    from spinecohort.cohort.bones import MESH_SUFFIXES
+    from spinecohort.layout import MESH_SUFFIXES
 
     folder = Path(config["cohort"]["folder"])
     if cohort_layout(config) == "per_bone":

@@ -14,6 +14,9 @@ from pathlib import Path
 #: the deck name the seed's Data Records use for the mean model
 TEMPLATE_DECK_NAME = "Mean_Model (Template).inp"
 
+#: mesh file suffixes a user's cohort folder may hold (what segmentation tools export; pyvista reads them all)
+MESH_SUFFIXES = (".stl", ".ply", ".obj", ".vtk", ".vtp")
+
 #: the SSM and virtual-cohort figures (figures.smk; the SSM curves come from ssm.smk)
 FIGURE_NAMES = (
     "ssm/compactness.png",

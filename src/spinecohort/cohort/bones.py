@@ -24,13 +24,12 @@ from scipy import sparse
 from spinecohort.cohort.landmarks import LEVELS
 from spinecohort.cohort.loading import UNIT_TO_MM
 from spinecohort.cohort.surfaces import edge_check, signed_volume
+from spinecohort.layout import MESH_SUFFIXES
 
 log = logging.getLogger(__name__)
 
 #: every bone of the reference, cranial to caudal, then left before right
 BONES: tuple[str, ...] = (*LEVELS, "sacrum", "hip_left", "hip_right", "femur_left", "femur_right")
-#: file suffixes read (anything pyvista reads would do; these are what segmentation tools export)
-MESH_SUFFIXES = (".stl", ".ply", ".obj", ".vtk", ".vtp")
 #: largest extent of any one bone in mm: a vertebra ~30-90 mm, a hip bone ~250 mm, a full femur ~500 mm
 BONE_EXTENT_MM = (8.0, 600.0)
 
