@@ -11,14 +11,14 @@ ssm, hex SSM, template, cohort under ``--results``).  Writes a fresh store (in a
 ``--shard-models`` (with ``--all`` by default the config's ``store.shard_models``, else 343), runs the listed
 shards (``--all``: every shard, i.e. the whole store stage) each as its own process with Snakemake's
 one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
-``store.shards.run_shard_job``), then ``check_store``, and prints in one run:
+``virtual.shard_job.run_shard_job``), then ``check_store``, and prints in one run:
 
 * per job: wall, CPU (user + system, from ``wait4``), of it system, the write phase's system CPU, peak RSS,
   bytes per node, encode CPU, CPU per phase; the crc32c of every shard object (compare runs and versions);
 * bytes per node; the **compression floor**: CPU time to encode the same stored values with the same codec
   chain (transpose + blosc) and nothing else, measured in this run as the jobs ran (a fresh process per
   shard, ``--jobs`` at a time: the same sharing of caches and memory bandwidth) and once in this process
-  alone (which alone moved by +-8 % between identical runs, docs/store.md session 21); the store stage's
+  alone (which alone moves by +-8 % between identical runs); the store stage's
   CPU / floor and the write phase's CPU / floor;
 * wall per shard job, peak RSS, and with ``--all`` the measured wall of the whole stage;
 * a cold read of one model's tri + hex coordinates (the shard files dropped from the page cache with
@@ -28,10 +28,10 @@ one-thread environment, ``--jobs`` at a time (the ``sample_shard`` job's code,
 
 ``--explore`` (instead of the stage): bytes per node and encode speed of the alternative layouts and codecs
 (core Zarr v3 codecs only) on a sample of real models (``EXPLORE_SAMPLES``), and how far each coordinate
-rounding moves the measured parameters (docs/store.md).  ``--explore --explore-orders [--explore-blocks
+rounding moves the measured parameters (docs/explanation/performance.md).  ``--explore --explore-orders [--explore-blocks
 224 128 512]``: the chosen codec chain with the nodes of both arrays permuted into other orders
 (:func:`node_orders`: Morton, Hilbert, reverse Cuthill-McKee, anatomical parts, long axis, the template's
-rings and layers transposed), per blosc block size (docs/store.md, "Node order (session 8)").
+rings and layers transposed), per blosc block size (docs/explanation/performance.md).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 _JOB = """
 import json, sys
-from spinecohort.store.shards import run_shard_job
+from spinecohort.virtual.shard_job import run_shard_job
 a = json.loads(sys.argv[1])
 rec = run_shard_job(a["store"], a["shard"], a["inputs"], a["outputs"], a["settings"], a["measure"])
 """
@@ -531,9 +531,7 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="shard jobs at a time (2 = snakemake -j2 on 2 cores)")
     ap.add_argument("--explore", action="store_true")
     ap.add_argument("--explore-sample", choices=sorted(EXPLORE_SAMPLES), default="spread")
-    ap.add_argument(
-        "--explore-orders", action="store_true", help="with --explore: node orders instead of codecs (docs/store.md)"
-    )
+    ap.add_argument("--explore-orders", action="store_true", help="with --explore: node orders instead of codecs")
     ap.add_argument("--explore-blocks", type=int, nargs="+", default=[224, 128, 512], help="blosc block KiB")
     ap.add_argument("--floor-of", nargs=2, metavar=("STORE", "SHARD"), help=argparse.SUPPRESS)  # one floor process
     a = ap.parse_args(argv)
@@ -624,7 +622,7 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
         f"check_store: {chk['wall_s']:.1f} s wall, {chk['cpu_s']:.1f} s CPU (sys {chk['sys_s']:.1f}), {bad} shards "
         "flagged (unwritten ones)"
     )
-    # the floor twice: in this process alone (as sessions 5-20 measured it), and as the jobs ran, one fresh
+    # the floor twice: in this process alone, and as the jobs ran, one fresh
     # process per shard, --jobs at a time: the codec's CPU under the same sharing of caches and memory bandwidth
     floor_alone = codec_floor(store, shards)
     runs = run_jobs([[sys.executable, __file__, "--floor-of", str(store), str(s)] for s in shards], a.jobs)

@@ -11,7 +11,8 @@ from spinecohort.measure.tables import parse_range, query_models, tri_vs_hex_sum
 from spinecohort.mesh.hex_ssm import HexSSM, transfer_fields
 from spinecohort.mesh.quality import scaled_jacobian
 from spinecohort.mesh.repair import boundary_nodes
-from spinecohort.store.shards import (
+from spinecohort.store.zarr_store import ShardWriter, create_store, error_bound_mm, read_shard
+from spinecohort.virtual.shard_job import (
     _param_diff,
     check_and_repair,
     hex_landmarks,
@@ -20,7 +21,6 @@ from spinecohort.store.shards import (
     sample_points,
     shard_models_of,
 )
-from spinecohort.store.zarr_store import ShardWriter, create_store, error_bound_mm, read_shard
 
 LEVELS = [-1.0, 0.0, 1.0]  # 3 modes x 3 levels = 27 models, shards of 9: shard 1 = IDs 9..17, mean = 13
 N_MODES = 3
@@ -309,12 +309,14 @@ def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, templ
 def test_the_shard_job_does_not_import_what_it_never_calls():
     """Start-up paid by every shard job: untangling (scipy.optimize, scipy.sparse, pyvista), template building
     (scipy.optimize, scipy.spatial.transform) and the hex-SSM transfer (scipy.spatial) import their modules
-    where they are used; measured ~0.8 s of the job's 1.9-2.3 s of imports (docs/store.md)."""
+    where they are used; measured ~0.8 s of the job's 1.9-2.3 s of imports."""
     import subprocess
     import sys
 
     heavy = ("pyvista", "vtk", "scipy.optimize", "scipy.sparse", "scipy.spatial", "pandas")
-    code = f"import sys; import spinecohort.store.shards; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
+    code = (
+        f"import sys; import spinecohort.virtual.shard_job; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == []
 

@@ -20,6 +20,7 @@ import zarr
 
 from spinecohort.ssm.model import build_ssm
 from spinecohort.ssm.procrustes import procrustes_align
+from spinecohort.store import direct_io
 from spinecohort.store import zarr_store as S
 
 # Half the 2^-10 mm quantum; the rounded value is exact in float32 (|x| * 2^10 < 2^24), so nothing else adds.
@@ -503,7 +504,7 @@ def _refuse_o_direct(monkeypatch, call: str) -> None:
             raise OSError(errno.EINVAL, "no O_DIRECT here")
         return real(first, *rest)
 
-    monkeypatch.setattr(S.os, call, refusing)
+    monkeypatch.setattr(direct_io.os, call, refusing)
 
 
 @pytest.mark.parametrize("refuse", ["", "open", "readv"])

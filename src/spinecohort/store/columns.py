@@ -1,9 +1,8 @@
 """The shard jobs' tables as columns: an ordered ``dict`` of equal-length numpy arrays, written to CSV
 byte for byte as ``pandas.DataFrame(columns).to_csv(path, index=False, float_format=...)`` writes them.
 
-A shard job makes three small tables (2,401 rows); building them as DataFrames cost it ~0.5 s of CPU and
-importing pandas another 0.35 s, 7 % of the job (docs/store.md, session 21), so the job never imports
-pandas.  Readers of the tables (``measure.tables``, the platform) use pandas as before.
+A shard job makes three small tables; it never imports pandas (docs/explanation/library-paths.md measures
+what that saves).  Readers of the tables (``measure.tables``, the platform) use pandas.
 """
 
 from __future__ import annotations
