@@ -225,6 +225,11 @@ class ShardWriter:
             self.stored_bytes += obj.stat().st_size
             if os.environ.get(FAULT_KILL_ENV) == str(self.shard):  # fault injection: die between the two arrays
                 os.kill(os.getpid(), signal.SIGKILL)
+        return self._finish(objects)
+
+    def _finish(self, objects: dict) -> dict:
+        """Write the shard's weights chunk, then its sidecar (the completion mark) recording ``objects`` (the
+        point-array objects' crc32c and sizes) and the weights object's; returns the record."""
         rw = zarr.open_group(str(self.path), mode="r+")
         rw["weights"][self.start : self.stop] = weights_of(
             np.arange(self.start, self.stop), self.meta["n_modes"], self.meta["levels"]

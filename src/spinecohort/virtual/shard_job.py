@@ -1,5 +1,9 @@
 """Per-shard logic of the virtual-cohort stage: sample, check and repair, measure, store (one shard = one job).
 
+It sits above ``spinecohort.store`` (which imports nothing else of spinecohort) and calls down into ``ssm``,
+``mesh``, ``measure`` and ``store``: the measurement runs on the float64 coordinates before the store
+rounds them, so it belongs to the job, not to the store.
+
 A shard is a contiguous model-ID range (``store.shard_range``).  ``process_shard`` makes one pass over it
 in batches of whole store chunks: it samples the hexahedral SSM's volume nodes and the triangulated SSM's
 landmark rows (float64 formula plus the disc-contact distraction), checks every hex of every model and
@@ -511,7 +515,7 @@ def run_shard_job(
         close_cpu_s=time.process_time() - c1,  # index, renames, weights, sidecar and the three CSV files
         encode_cpu_s=writer.encode_cpu_s,
         stored_bytes=writer.stored_bytes,
-        # per node of the models held (tri + whole hex model), as format 3 counted: comparable across formats
+        # per node of the models held (tri + whole hex model, its surface nodes counted though stored once)
         stored_nodes=len(ids) * (writer.n_nodes["tri/points"] + writer.n_hex_nodes),
         wall_s=wall,
         models_per_s=len(ids) / wall,
