@@ -1,30 +1,25 @@
-"""Library paths against the store stage's hand-written infrastructure: the stage wall time both ways.
+"""The store stage's wall with its hand-written shard writer against zarr-python writing the same shards.
 
     python benchmarks/bench_library_paths.py --results results --out /tmp/bench-lib [--rounds 3]
-                                             [--variants hand npz pandas buffered zarr]
 
 Needs the inputs of the shard jobs of a default-config run (ssm, hex SSM, template, cohort under
 ``--results``; read only).  Each round runs the store stage once per variant, in an order rotated from round
-to round (the machine's load drifts; interleaving spreads it over all variants): a fresh store of the
+to round (the machine's load drifts; interleaving spreads it over the variants): a fresh store of the
 config's grid and ``store.shard_models`` under ``--out``, every shard as its own process with Snakemake's
 one-thread environment, two at a time (``snakemake -j2`` on two cores: the ``sample_shard`` jobs,
 ``virtual.shard_job.run_shard_job``), then the ``check_store`` job; the store is deleted after each run.
-A variant swaps one hand-written piece for its library path, everything else as committed:
 
-* ``hand``: as committed;
-* ``npz``: ``numpy.load(path)["modes"][:n]`` instead of ``ssm.model.npz_leading_rows`` (the 5 modes the grid
-  samples of the SSM's 41);
-* ``pandas``: the shard tables by ``pandas.DataFrame(columns).to_csv`` instead of ``store.columns.write_csv``
-  (pandas imported by the job);
-* ``buffered``: the shard objects written and checked with ordinary buffered file I/O instead of
-  ``O_DIRECT`` (``store.direct_io``);
+* ``hand``: as committed (``store.writer.ShardWriter`` writes the sharding format itself, streaming);
 * ``zarr``: the shard objects written by zarr-python's sharding codec (``array[a:b] = values``; the same
-  codecs, chunks and shards) instead of ``store.writer.ShardWriter``'s own shard format.  zarr-python cannot
-  stream a shard: each partial write reads the shard object and writes it again whole, and a whole-shard
-  write holds the shard's decoded values (8,407 models x 92,335 nodes x 12 B = 9.3 GB per job).  So the
-  values are handed over in ``--flush-models`` blocks (1,232 by default: ~1.4 GB per job) and the crc32c
-  of each object, which zarr does not report, is read back after the write;
-* ``library``: all of the above at once.
+  codecs, chunks and shards).  zarr-python cannot stream a shard: each partial write reads the shard object
+  and writes it again whole, and a whole-shard write holds the shard's decoded values (8,407 models x 92,335
+  nodes x 12 B = 9.3 GB per job).  So the values are handed over in ``--flush-models`` blocks (1,232 by
+  default: ~1.4 GB per job) and the crc32c of each object, which zarr does not report, is read back.
+
+The library paths that replaced the store stage's other hand-written pieces (buffered I/O for ``O_DIRECT``,
+pandas for a CSV writer, ``numpy.load`` for an npz prefix reader) were measured by this benchmark with
+``--variants hand npz pandas buffered zarr`` at the commit that still had them
+(docs/explanation/library-paths.md).
 
 Printed: per run, the shard jobs' wall (the stage a user waits for), ``check_store``'s wall, their sum,
 each job's CPU, kernel CPU and peak RSS, and whether the stored bytes (every shard object's crc32c) and the
@@ -50,7 +45,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 HERE = Path(__file__).resolve().parent
-VARIANTS = ("hand", "npz", "pandas", "buffered", "zarr", "library")
+VARIANTS = ("hand", "zarr")
 #: Snakemake's environment for a threads: 1 job
 ONE_THREAD = {
     k: "1"
@@ -75,58 +70,7 @@ print(len(shard_problems(sys.argv[1])))
 """
 
 
-# ------------------------------------------------------------------------------- the library paths
-class BufferedWriter:
-    """``DirectWriter``'s interface over an ordinary buffered file (the page cache)."""
-
-    direct = False
-
-    def __init__(self, path):
-        self._f = open(path, "wb")
-        self.size = 0
-
-    def write(self, data) -> int:
-        n = self._f.write(data)
-        self.size += n
-        return n
-
-    def close(self) -> None:
-        self._f.close()
-
-
-class BufferedReader:
-    """``DirectReader``'s interface over an ordinary buffered file."""
-
-    def __init__(self, path):
-        self._f = open(path, "rb")
-
-    def blocks(self):
-        yield from iter(lambda: self._f.read(8 << 20), b"")
-
-    def read(self, size: int = -1) -> bytes:
-        return self._f.read(size)
-
-    def close(self) -> None:
-        self._f.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def pandas_write_csv(columns, path, float_format: str) -> None:
-    import pandas as pd
-
-    pd.DataFrame(columns).to_csv(path, index=False, float_format=float_format)
-
-
-def numpy_leading_rows(path, key: str, n_rows: int) -> np.ndarray:
-    with np.load(path) as z:
-        return np.array(z[key][:n_rows])
-
-
+# ------------------------------------------------------------------------------- the library path
 def zarr_shard_writer(flush_models: int):
     """A ``ShardWriter`` whose shard objects zarr-python writes: the same rounding and chunk forming, then the
     values in logical order handed to ``zarr.Array.__setitem__`` every ``flush_models`` models."""
@@ -180,20 +124,10 @@ def zarr_shard_writer(flush_models: int):
 
 
 def use(variant: str, flush_models: int) -> None:
-    """Swap the hand-written pieces of ``variant`` for their library paths in this process."""
-    import spinecohort.ssm.model as model
-    import spinecohort.store.integrity as integrity
-    import spinecohort.store.writer as writer
+    """Swap the hand-written shard writer for zarr-python's in this process (``variant`` "zarr")."""
     import spinecohort.virtual.shard_job as job
 
-    if variant in ("npz", "library"):
-        model.npz_leading_rows = numpy_leading_rows
-    if variant in ("pandas", "library"):
-        job.write_csv = pandas_write_csv
-    if variant in ("buffered", "library"):
-        writer.DirectWriter = BufferedWriter
-        integrity.DirectReader = BufferedReader
-    if variant in ("zarr", "library") and flush_models:
+    if variant == "zarr" and flush_models:
         job.ShardWriter = zarr_shard_writer(flush_models)
 
 
@@ -300,7 +234,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
     ap.add_argument("--out", required=True, help="scratch folder (a store of ~8 GB at a time, deleted after each run)")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS[:5]), choices=VARIANTS)
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     ap.add_argument("--flush-models", type=int, default=1232, help="zarr variant: models per zarr write")
     ap.add_argument("--json", help="also write every run's numbers to this file")
     a = ap.parse_args(argv)

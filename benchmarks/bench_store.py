@@ -647,8 +647,8 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
         f"check, transpose, encode, crc32c, file writes): {write_cpu:.1f} s CPU = {write_cpu / floor:.2f} x floor"
     )
     print(
-        f"write phase kernel (sys) CPU, all jobs: {write_sys:.1f} s (shard objects written with O_DIRECT, around "
-        f"the page cache: store.zarr_store.DirectWriter); check_store (O_DIRECT reads): {chk['sys_s']:.1f} s sys"
+        f"write phase kernel (sys) CPU, all jobs: {write_sys:.1f} s (shard objects written through the page "
+        f"cache); check_store: {chk['sys_s']:.1f} s sys"
     )
     stage_sys = sum(j["sys_s"] for j in jobs) + chk["sys_s"]
     print(

@@ -179,8 +179,6 @@ def write_archive(path: str | Path, root: str | Path, members, prefix: str = STO
     Same files -> byte-identical archive: members in the given (sorted) order, PAX format, mtime
     ARCHIVE_MTIME, mode 0644, uid/gid 0, empty owner names, no directory entries.
     """
-    from spinecohort.store.zarr_store import DirectReader
-
     root = Path(root)
     with (
         open(path, "wb") as fh,
@@ -193,7 +191,7 @@ def write_archive(path: str | Path, root: str | Path, members, prefix: str = STO
             info.mtime, info.mode, info.type = ARCHIVE_MTIME, 0o644, tarfile.REGTYPE
             info.uid = info.gid = 0
             info.uname = info.gname = ""
-            with DirectReader(src) as f:  # read once: around the page cache (the store's shard objects)
+            with open(src, "rb") as f:
                 tar.addfile(info, f)
     return Path(path)
 

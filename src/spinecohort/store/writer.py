@@ -1,9 +1,8 @@
 """The shard writer: one shard of both point arrays, streamed batch by batch into its Zarr shard objects.
 
 :class:`ShardWriter` writes a shard object itself (the sharding format: the encoded inner chunks, then the
-index of (offset, nbytes) uint64 pairs and its crc32c), streaming batch by batch with ``O_DIRECT``
-(:class:`~spinecohort.store.direct_io.DirectWriter`), so a job never holds a whole shard and computes each
-object's crc32c as it writes it.  Its bytes are identical to zarr-python's own write of the same array
+index of (offset, nbytes) uint64 pairs and its crc32c), streaming batch by batch, so a job never holds a
+whole shard and computes each object's crc32c as it writes it.  Its bytes are identical to zarr-python's own write of the same array
 (tested), and a second implementation (tensorstore) reads them (tested).  zarr-python and tensorstore
 cannot stream a shard: they rewrite the whole shard object on each partial write, or hold the whole shard
 in memory (docs/explanation/library-paths.md measures that path).
@@ -21,7 +20,6 @@ import numpy as np
 import zarr
 
 from spinecohort.store.chunks import _LINEAR_BLOCK, LinearPoints, _stored_chunks_nb
-from spinecohort.store.direct_io import DirectWriter
 from spinecohort.store.format import (
     _EMPTY,
     FAULT_KILL_ENV,
@@ -108,7 +106,7 @@ class ShardWriter:
         for name, obj in self.objects.items():
             obj.parent.mkdir(parents=True, exist_ok=True)
             self._tmp[name] = obj.with_name(f"{obj.name}.{os.getpid()}.partial")
-            self._files[name] = DirectWriter(self._tmp[name])  # around the page cache: no job reads it back
+            self._files[name] = open(self._tmp[name], "wb")
             slots = meta["shard_models"] // self.chunk
             self._index[name] = np.full((slots, 2), _EMPTY, dtype="<u8")
             self._crc[name] = 0

@@ -3,12 +3,10 @@
 The modules behind it, by concern: :mod:`~spinecohort.store.grid` (model IDs and shards),
 :mod:`~spinecohort.store.format` (layout, encoding, metadata, create and read),
 :mod:`~spinecohort.store.chunks` (the chunk-forming kernels), :mod:`~spinecohort.store.writer` (the shard
-writer), :mod:`~spinecohort.store.direct_io` (``O_DIRECT`` file I/O) and
-:mod:`~spinecohort.store.integrity` (checksums, rebuild).  The format: docs/reference/store-format.md.
+writer) and :mod:`~spinecohort.store.integrity` (checksums, rebuild).  The format: docs/reference/store-format.md.
 """
 
 from spinecohort.store.chunks import LinearPoints, linear_fields
-from spinecohort.store.direct_io import DirectReader, DirectWriter
 from spinecohort.store.format import (
     BLOSC_BLOCK_BYTES,
     BLOSC_CLEVEL,
@@ -51,7 +49,6 @@ from spinecohort.store.integrity import (
     file_sha256,
     invalidate_shard,
     object_crc32c,
-    object_sha256,
     shard_problems,
 )
 from spinecohort.store.writer import ShardWriter, check_surface_nodes, write_shard
@@ -70,8 +67,6 @@ __all__ = [
     "SHARD_ARRAYS",
     "STORE_FORMAT",
     "SURFACE_VERTEX",
-    "DirectReader",
-    "DirectWriter",
     "LinearPoints",
     "ShardWriter",
     "StoreVersionError",
@@ -94,7 +89,6 @@ __all__ = [
     "n_models",
     "n_shards",
     "object_crc32c",
-    "object_sha256",
     "quantize_mm",
     "read_model",
     "read_shard",

@@ -32,6 +32,7 @@ import warnings
 
 import numba
 import numpy as np
+import pandas as pd
 import zarr
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
@@ -43,7 +44,7 @@ from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
 from spinecohort.store.chunks import LinearPoints, linear_fields
-from spinecohort.store.columns import QUALITY_SUMMARY, Columns, concat_columns, write_csv
+from spinecohort.store.columns import QUALITY_SUMMARY, Columns, concat_columns
 from spinecohort.store.grid import model_name, shard_range, weights_of
 from spinecohort.store.writer import ShardWriter
 
@@ -503,9 +504,8 @@ def run_shard_job(
         raise
     t1, c1 = time.perf_counter(), time.process_time()
     record = writer.close()
-    write_csv(quality, outputs["quality"], "%.6g")
-    write_csv(params, outputs["params"], "%.6f")
-    write_csv(diff, outputs["tri_vs_hex"], "%.6g")
+    for table, key, fmt in ((quality, "quality", "%.6g"), (params, "params", "%.6f"), (diff, "tri_vs_hex", "%.6g")):
+        pd.DataFrame(table).to_csv(outputs[key], index=False, float_format=fmt)
     wall = time.perf_counter() - t0
     record.update(
         timing,
