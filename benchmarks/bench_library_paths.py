@@ -16,10 +16,9 @@ one-thread environment, two at a time (``snakemake -j2`` on two cores: the ``sam
   nodes x 12 B = 9.3 GB per job).  So the values are handed over in ``--flush-models`` blocks (1,232 by
   default: ~1.4 GB per job) and the crc32c of each object, which zarr does not report, is read back.
 
-The library paths that replaced the store stage's other hand-written pieces (buffered I/O for ``O_DIRECT``,
-pandas for a CSV writer, ``numpy.load`` for an npz prefix reader) were measured by this benchmark with
-``--variants hand npz pandas buffered zarr`` at the commit that still had them
-(docs/explanation/library-paths.md).
+The store stage's other I/O uses library paths (buffered files, pandas ``to_csv``, ``numpy.load``); their
+measurement against hand-written versions, and the command that reproduces it, are in
+docs/explanation/library-paths.md.
 
 Printed: per run, the shard jobs' wall (the stage a user waits for), ``check_store``'s wall, their sum,
 each job's CPU, kernel CPU and peak RSS, and whether the stored bytes (every shard object's crc32c) and the
