@@ -216,6 +216,20 @@ def _check_store(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rom_table(args: argparse.Namespace) -> int:
+    import pandas as pd
+
+    from spinecohort.rom.tables import modes_markdown, sensitivity_markdown
+
+    default = {"sensitivity": "results/rom/sensitivity.csv", "modes": "results/rom/modes.csv"}[args.table]
+    path = Path(args.csv or default)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file (make it with: snakemake -j2 {default})")
+    table = pd.read_csv(path)
+    print((sensitivity_markdown if args.table == "sensitivity" else modes_markdown)(table), end="")
+    return 0
+
+
 def _query(args: argparse.Namespace) -> int:
     import pandas as pd
 
@@ -469,6 +483,14 @@ def main(argv: list[str] | None = None) -> int:
     cs.add_argument("--rebuild", action="store_true", help="remove bad shards and their per-shard records")
     cs.add_argument("--records", type=Path, help="per-shard records folder (default: <store>/../shards)")
     cs.set_defaults(func=_check_store)
+
+    rt = sub.add_parser(
+        "rom-table",
+        help="the ROM sensitivity or mode-study table as Markdown, from results/rom/sensitivity.csv or modes.csv",
+    )
+    rt.add_argument("table", choices=["sensitivity", "modes"])
+    rt.add_argument("csv", nargs="?", help="the rule's CSV (default results/rom/<table>.csv)")
+    rt.set_defaults(func=_rom_table)
 
     q = sub.add_parser(
         "query",
