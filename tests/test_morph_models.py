@@ -1,8 +1,11 @@
 """Morphing the template onto the SSM mean, and single models on demand (with Jacobian repair)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from spinecohort.cohort.landmarks import LEVELS
 from spinecohort.cohort.stl_io import read_stl
 from spinecohort.fe.models import hex_points_checked, parse_model_id, virtual_model, write_model
 from spinecohort.mesh.hex_ssm import transfer_fields
@@ -104,3 +107,32 @@ def test_extreme_models_of_a_tiny_ssm_are_refused_by_name(morphed, small_cohort,
     if len(bad):
         with pytest.raises(RepairError, match=f"model_{bad[0]:05d} .* cannot be repaired"):
             virtual_model(int(bad[0]), ssm, hssm, t, 3, [-3, 0, 3])
+
+
+def test_a_rim_band_endplate_morphs_through_the_whole_endplate(small_cohort):
+    # A real endplate's clinical patch is its rim band (the ring apophysis, docs/explanation/anatomy.md); the whole
+    # concave endplate is `endplate_full_*`.  Here the synthetic patches play the whole endplates and their outer
+    # rings the rim bands: the template must be placed and morphed exactly as on the whole patches (the rim band's
+    # ring only would pull the endplate layers' core nodes out onto the ring and invert the bodies and discs).
+    lm = small_cohort.landmarks
+    banded = replace(
+        lm,
+        endplate_sup={**{lv: lm.rim_sup[lv] for lv in LEVELS}, "S1": lm.endplate_sup["S1"]},
+        endplate_inf={lv: lm.rim_inf[lv] for lv in LEVELS},
+        endplate_full_sup=lm.endplate_sup,
+        endplate_full_inf=lm.endplate_inf,
+    )
+    ssm = build_ssm(procrustes_align(small_cohort.vertices).aligned)
+    res = TEMPLATE_RESOLUTIONS["coarse"]
+    t = build_template(ssm.mean, small_cohort.faces, lm, res)
+    expected, _ = morph_template(t, ssm.mean, small_cohort.faces, lm)
+    tb = build_template(ssm.mean, small_cohort.faces, banded, res)
+    assert np.array_equal(tb.nodes, t.nodes)
+    nodes, _ = morph_template(tb, ssm.mean, small_cohort.faces, banded)
+    assert np.array_equal(nodes, expected)
+    assert scaled_jacobian(nodes, tb.hexes).min() > 0.45  # as the default morph (0.503)
+    rim_only = replace(banded, endplate_full_sup={}, endplate_full_inf={})
+    ring, _ = morph_template(
+        build_template(ssm.mean, small_cohort.faces, rim_only, res), ssm.mean, small_cohort.faces, rim_only
+    )
+    assert (scaled_jacobian(ring, tb.hexes) <= 0).sum() > 100

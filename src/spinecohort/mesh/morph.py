@@ -120,10 +120,11 @@ def _projection_groups(shape, grid, core_cells, name, landmarks, mean_points, me
     if name == "S1":
         return [(ids.ravel(), target, faces)], None
     groups = []
-    for layer, key in ((0, "endplate_inf"), (nl - 1, "endplate_sup")):
-        patch = getattr(landmarks, key)[name]
+    # the whole endplate (a real one's concave surface, not only its rim band): the layer's core nodes land on it
+    caps = [landmarks.endplate_surface(side, name) for side in ("inf", "sup")]
+    for layer, patch in zip((0, nl - 1), caps):
         groups.append((ids[layer], mean_points[patch], _faces_of(mean_faces, patch)))
-    caps = np.concatenate([landmarks.endplate_inf[name], landmarks.endplate_sup[name]])
+    caps = np.concatenate(caps)
     wall_faces = _faces_of(mean_faces, landmarks.body[name])
     keep = ~np.isin(landmarks.body[name][wall_faces], caps).all(1)  # triangles not lying in a cap
     groups.append((ids[1:-1, grid.outer].ravel(), target, wall_faces[keep]))
@@ -210,7 +211,7 @@ def morph_template(
         (lv, [i for i, ly in enumerate(layers) if ly["kind"] == "body" and ly["level"] == lv], landmarks.body[lv])
         for lv in LEVELS
     ]
-    parts.append(("S1", [0], landmarks.endplate_sup["S1"]))
+    parts.append(("S1", [0], landmarks.endplate_surface("sup", "S1")))
     for k, (name, layer_ids, target_ids) in enumerate(parts):
         block = hex_layers[layer_ids]  # (nl, n2, 3)
         is_surface = np.zeros(block.shape[:2], bool)
