@@ -136,3 +136,31 @@ def test_a_rim_band_endplate_morphs_through_the_whole_endplate(small_cohort):
         build_template(ssm.mean, small_cohort.faces, rim_only, res), ssm.mean, small_cohort.faces, rim_only
     )
     assert (scaled_jacobian(ring, tb.hexes) <= 0).sum() > 100
+
+
+def test_wall_nodes_move_along_their_rays_on_a_waisted_body():
+    # A vertebral body's wall is waisted: radius 20 - 3 sin(pi z / 20) mm over z 0..20 mm (the waist 3 mm deep at
+    # mid-height).  Closest points of nodes on a cylinder of radius 22 mm slide towards the rims (by up to a few mm
+    # in height, more than a coarse layer's quarter of the body); the ray from the layer's centre keeps each node's
+    # height and lands on the wall at that height: radius 20 - 3 sin(pi z / 20).
+    from spinecohort.mesh.morph import _closest_points, _ray_points
+
+    theta = np.linspace(0.0, 2.0 * np.pi, 121)[:-1]
+    z = np.linspace(0.0, 20.0, 81)
+    radius = 20.0 - 3.0 * np.sin(np.pi * z / 20.0)
+    verts = np.stack(
+        [radius[:, None] * np.cos(theta), radius[:, None] * np.sin(theta), np.broadcast_to(z[:, None], (81, 120))], -1
+    ).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(80), np.arange(120), indexing="ij")
+    a, b = i * 120 + j, i * 120 + (j + 1) % 120
+    faces = np.concatenate([np.stack([a, b, b + 120], -1), np.stack([a, b + 120, a + 120], -1)]).reshape(-1, 3)
+    heights = np.array([2.5, 5.0, 7.5, 12.5, 15.0, 17.5])
+    nodes = np.stack([np.full(6, 22.0), np.zeros(6), heights], 1)
+    centres = np.stack([np.zeros(6), np.zeros(6), heights], 1)
+    on_ray = _ray_points(nodes, centres, verts, faces)
+    assert np.allclose(on_ray[:, 2], heights, atol=1e-9) and np.allclose(on_ray[:, 1], 0.0, atol=1e-9)
+    # on the facetted wall: between the chord (cos of half the 3 deg sector, here 0 deg: a vertex column) and the
+    # linear interpolation of the radius between rows 0.25 mm apart (error < 3 (pi/20)^2 0.25^2 / 8 = 0.0023 mm)
+    assert np.allclose(on_ray[:, 0], 20.0 - 3.0 * np.sin(np.pi * heights / 20.0), atol=3e-3)
+    closest = _closest_points(nodes, verts, faces)
+    assert np.abs(closest[:, 2] - heights).max() > 1.0  # the closest points slide along the waist
