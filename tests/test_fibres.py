@@ -48,7 +48,8 @@ def test_the_segment_measures_the_fibre_stretch_of_any_homogeneous_deformation()
     corners = _distorted_hex()
     hexes = np.arange(8)[None]
     dirs = fibre_directions(corners.mean(0)[None], np.array([[0.0, -50.0, -5.0]]), np.array([[0.0, -50.0, 5.0]]), 40.0)
-    ends, weights, halvings = embedded_segments(corners, hexes, dirs, 1.0)
+    ends, weights, halvings, in_layer = embedded_segments(corners, hexes, dirs, 1.0)
+    assert not in_layer.any()  # the disc-axis directions fit: none replaced
     assert np.allclose(np.einsum("efsk,kj->efsj", weights, corners), ends, atol=1e-12)
     seg = ends[0, :, 1] - ends[0, :, 0]
     length = np.linalg.norm(seg, axis=1)
@@ -60,6 +61,48 @@ def test_the_segment_measures_the_fibre_stretch_of_any_homogeneous_deformation()
     seg_moved = np.einsum("fsk,kj->fsj", weights[0], moved)
     stretch = np.linalg.norm(seg_moved[:, 1] - seg_moved[:, 0], axis=1) / length
     assert np.allclose(stretch, np.linalg.norm(seg @ F.T, axis=1) / length, atol=1e-12)
+
+
+def test_a_fibre_stays_in_the_lamella_of_a_sheared_thin_outer_ring():
+    # The outer annulus ring of a disc whose two endplates differ in extent: 0.4 mm thick radially (the 6 % shell
+    # ring), 9 mm circumferential, 1 mm high, its top face 2.3 mm further in than its bottom (the T12-L1 ring of the
+    # real-anatomy mean, hexes 3188-3191).  Along the disc-axis family (46 deg) half a 1 mm segment climbs
+    # sin(46) 0.5 = 0.36 mm, i.e. 0.83 mm radially at constant height: 4.1 in the ring's natural coordinate, too
+    # far even at 1/8 mm.  In the ring's lamella (constant radial natural coordinate) the segment fits.
+    bottom = np.array([[0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [9.0, 0.4, 0.0], [0.0, 0.4, 0.0]])
+    corners = np.concatenate([bottom, bottom + [0.0, -2.3, 1.0]])  # VTK / C3D8 order
+    hexes = np.arange(8)[None]
+    axis_a, axis_b = np.array([[4.5, 30.0, -5.0]]), np.array([[4.5, 30.0, 5.0]])  # radial -y, circumferential x
+    dirs = fibre_directions(corners.mean(0)[None], axis_a, axis_b, 46.0)
+    assert np.allclose(np.abs(dirs[0] @ [0.0, 1.0, 0.0]), 0.0)  # the disc-axis family has no radial component
+    ends, weights, halvings, in_layer = embedded_segments(corners, hexes, dirs, 1.0)
+    assert in_layer.all()
+    seg = ends[0, :, 1] - ends[0, :, 0]
+    # in the lamella: the ring's radial natural coordinate (xi_2, edge 1 -> 2) is the same at both ends, so the
+    # segment is parallel to the sheared wall, whose in-plane directions are x and (0, -2.3, 1)
+    wall_normal = np.cross([1.0, 0.0, 0.0], [0.0, -2.3, 1.0])
+    assert np.allclose(seg @ wall_normal, 0.0, atol=1e-12)
+    assert np.allclose(np.linalg.norm(seg, axis=1), 1.0 / 2.0 ** halvings[0], rtol=1e-12)  # affine hex: exact
+    xi = (
+        2.0
+        * np.linalg.solve(
+            np.stack([corners[1] - corners[0], corners[3] - corners[0], corners[4] - corners[0]], 1),
+            (ends[0] - corners[0]).reshape(-1, 3).T,
+        ).T
+        - 1.0
+    )
+    assert np.abs(xi).max() <= 0.5 + 1e-12  # inside the inner half of the hex
+    # the closest in-layer direction: the disc-axis direction minus its component along the wall's normal
+    n = wall_normal / np.linalg.norm(wall_normal)
+    expected = dirs[0] - np.outer(dirs[0] @ n, n)
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    assert np.allclose(seg / np.linalg.norm(seg, axis=1, keepdims=True), expected, atol=1e-12)
+    # a hex too thin even in its lamella (0.01 mm high and 0.01 mm long circumferentially) is refused, naming the
+    # model's hex id
+    needle = bottom * [0.01 / 9.0, 1.0, 1.0]
+    flat = np.concatenate([needle, needle + [0.0, 0.0, 0.01]])
+    with pytest.raises(ValueError, match="annulus hex 3189 "):
+        embedded_segments(flat, hexes, dirs, 1.0, hex_ids=np.array([3189]))
 
 
 def test_fibre_directions_lie_at_the_angle_in_the_circumferential_axial_plane():

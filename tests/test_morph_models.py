@@ -1,8 +1,11 @@
 """Morphing the template onto the SSM mean, and single models on demand (with Jacobian repair)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from spinecohort.cohort.landmarks import LEVELS
 from spinecohort.cohort.stl_io import read_stl
 from spinecohort.fe.models import hex_points_checked, parse_model_id, virtual_model, write_model
 from spinecohort.mesh.hex_ssm import transfer_fields
@@ -104,3 +107,60 @@ def test_extreme_models_of_a_tiny_ssm_are_refused_by_name(morphed, small_cohort,
     if len(bad):
         with pytest.raises(RepairError, match=f"model_{bad[0]:05d} .* cannot be repaired"):
             virtual_model(int(bad[0]), ssm, hssm, t, 3, [-3, 0, 3])
+
+
+def test_a_rim_band_endplate_morphs_through_the_whole_endplate(small_cohort):
+    # A real endplate's clinical patch is its rim band (the ring apophysis, docs/explanation/anatomy.md); the whole
+    # concave endplate is `endplate_full_*`.  Here the synthetic patches play the whole endplates and their outer
+    # rings the rim bands: the template must be placed and morphed exactly as on the whole patches (the rim band's
+    # ring only would pull the endplate layers' core nodes out onto the ring and invert the bodies and discs).
+    lm = small_cohort.landmarks
+    banded = replace(
+        lm,
+        endplate_sup={**{lv: lm.rim_sup[lv] for lv in LEVELS}, "S1": lm.endplate_sup["S1"]},
+        endplate_inf={lv: lm.rim_inf[lv] for lv in LEVELS},
+        endplate_full_sup=lm.endplate_sup,
+        endplate_full_inf=lm.endplate_inf,
+    )
+    ssm = build_ssm(procrustes_align(small_cohort.vertices).aligned)
+    res = TEMPLATE_RESOLUTIONS["coarse"]
+    t = build_template(ssm.mean, small_cohort.faces, lm, res)
+    expected, _ = morph_template(t, ssm.mean, small_cohort.faces, lm)
+    tb = build_template(ssm.mean, small_cohort.faces, banded, res)
+    assert np.array_equal(tb.nodes, t.nodes)
+    nodes, _ = morph_template(tb, ssm.mean, small_cohort.faces, banded)
+    assert np.array_equal(nodes, expected)
+    assert scaled_jacobian(nodes, tb.hexes).min() > 0.45  # as the default morph (0.503)
+    rim_only = replace(banded, endplate_full_sup={}, endplate_full_inf={})
+    ring, _ = morph_template(
+        build_template(ssm.mean, small_cohort.faces, rim_only, res), ssm.mean, small_cohort.faces, rim_only
+    )
+    assert (scaled_jacobian(ring, tb.hexes) <= 0).sum() > 100
+
+
+def test_wall_nodes_move_along_their_rays_on_a_waisted_body():
+    # A vertebral body's wall is waisted: radius 20 - 3 sin(pi z / 20) mm over z 0..20 mm (the waist 3 mm deep at
+    # mid-height).  Closest points of nodes on a cylinder of radius 22 mm slide towards the rims (by up to a few mm
+    # in height, more than a coarse layer's quarter of the body); the ray from the layer's centre keeps each node's
+    # height and lands on the wall at that height: radius 20 - 3 sin(pi z / 20).
+    from spinecohort.mesh.morph import _closest_points, _ray_points
+
+    theta = np.linspace(0.0, 2.0 * np.pi, 121)[:-1]
+    z = np.linspace(0.0, 20.0, 81)
+    radius = 20.0 - 3.0 * np.sin(np.pi * z / 20.0)
+    verts = np.stack(
+        [radius[:, None] * np.cos(theta), radius[:, None] * np.sin(theta), np.broadcast_to(z[:, None], (81, 120))], -1
+    ).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(80), np.arange(120), indexing="ij")
+    a, b = i * 120 + j, i * 120 + (j + 1) % 120
+    faces = np.concatenate([np.stack([a, b, b + 120], -1), np.stack([a, b + 120, a + 120], -1)]).reshape(-1, 3)
+    heights = np.array([2.5, 5.0, 7.5, 12.5, 15.0, 17.5])
+    nodes = np.stack([np.full(6, 22.0), np.zeros(6), heights], 1)
+    centres = np.stack([np.zeros(6), np.zeros(6), heights], 1)
+    on_ray = _ray_points(nodes, centres, verts, faces)
+    assert np.allclose(on_ray[:, 2], heights, atol=1e-9) and np.allclose(on_ray[:, 1], 0.0, atol=1e-9)
+    # on the facetted wall: between the chord (cos of half the 3 deg sector, here 0 deg: a vertex column) and the
+    # linear interpolation of the radius between rows 0.25 mm apart (error < 3 (pi/20)^2 0.25^2 / 8 = 0.0023 mm)
+    assert np.allclose(on_ray[:, 0], 20.0 - 3.0 * np.sin(np.pi * heights / 20.0), atol=3e-3)
+    closest = _closest_points(nodes, verts, faces)
+    assert np.abs(closest[:, 2] - heights).max() > 1.0  # the closest points slide along the waist

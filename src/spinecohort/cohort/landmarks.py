@@ -47,6 +47,10 @@ class Landmarks:
     pubic_symphysis: indices of a patch at the pubic symphysis (anterior orientation check).
     anchors: ligament attachment vertices, name -> (17,) one vertex per level T1..L5 (e.g. ``spinous_tip``,
         ``tp_tip_L``, ``iap_tip_R``); optional for user cohorts (ligaments need them).
+    endplate_full_sup / endplate_full_inf: level -> indices of the whole endplate surface, when
+        ``endplate_sup/inf`` are only its rim band (a real concave endplate, whose clinical plane is fitted on the
+        ring apophysis): the hex template's endplate layers are morphed onto this surface, which covers the
+        nucleus (`endplate_surface`).  Optional: empty, ``endplate_sup/inf`` are the whole planar patches.
     """
 
     part: np.ndarray
@@ -60,6 +64,14 @@ class Landmarks:
     pubic_symphysis: np.ndarray
     meta: dict = field(default_factory=dict)
     anchors: dict[str, np.ndarray] = field(default_factory=dict)
+    endplate_full_sup: dict[str, np.ndarray] = field(default_factory=dict)
+    endplate_full_inf: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def endplate_surface(self, side: str, level: str) -> np.ndarray:
+        """Vertex indices of the whole endplate of `level` (`side` 'sup' | 'inf'): ``endplate_full_<side>`` where
+        given, else the endplate patch ``endplate_<side>``."""
+        full = getattr(self, f"endplate_full_{side}")
+        return full[level] if level in full else getattr(self, f"endplate_{side}")[level]
 
     @property
     def n_vertices(self) -> int:
@@ -96,6 +108,8 @@ class Landmarks:
             part=self.part[rows],
             body={},
             anchors={},
+            endplate_full_sup={},
+            endplate_full_inf={},
             pubic_symphysis=np.searchsorted(rows, self.pubic_symphysis),
             **{name: {k: np.searchsorted(rows, v) for k, v in getattr(self, name).items()} for name in MEASURED_SETS},
         )
@@ -111,6 +125,8 @@ class Landmarks:
             "body": self.body,
             "pubic_symphysis": {"": self.pubic_symphysis},
             "anchors": self.anchors,
+            "endplate_full_sup": self.endplate_full_sup,
+            "endplate_full_inf": self.endplate_full_inf,
         }
 
     def to_dict(self) -> dict:
@@ -122,6 +138,8 @@ class Landmarks:
             "meta": self.meta,
         }
         for name, sets in self._sets().items():
+            if name.startswith("endplate_full") and not sets:
+                continue  # optional (`endplate_surface`): a cohort without them serializes as before
             if name == "pubic_symphysis":
                 out[name] = self.pubic_symphysis.astype(int).tolist()
             else:
@@ -148,6 +166,8 @@ class Landmarks:
             pubic_symphysis=idx(d["pubic_symphysis"]),
             meta=d.get("meta", {}),
             anchors={k: idx(v) for k, v in d.get("anchors", {}).items()},
+            endplate_full_sup={k: idx(v) for k, v in d.get("endplate_full_sup", {}).items()},
+            endplate_full_inf={k: idx(v) for k, v in d.get("endplate_full_inf", {}).items()},
         )
 
     def save(self, path: str | Path) -> None:

@@ -145,6 +145,7 @@ def annulus_fibres(
         k1,
         mats.fibre_k2,
         mats.fibre_angle_deg,
+        hex_ids=ids,
     )
 
 

@@ -64,32 +64,66 @@ def fibre_directions(centroids_mm: np.ndarray, axis_a_mm: np.ndarray, axis_b_mm:
     return np.stack([np.cos(t) * et + np.sin(t) * ez, np.cos(t) * et - np.sin(t) * ez], axis=1)
 
 
+def _natural_extent(jac: np.ndarray, directions: np.ndarray, length_mm: float) -> np.ndarray:
+    """(E, F, 3) natural-coordinate step of half a `length_mm` segment along each direction from the hex centre."""
+    return np.linalg.solve(jac[:, None], 0.5 * length_mm * directions[..., None])[..., 0]
+
+
+def in_lamella(jac: np.ndarray, directions: np.ndarray, length_mm: float) -> np.ndarray:
+    """(E, F, 3) the directions closest to `directions` that stay in the hex's layer: the component along the
+    gradient of the natural coordinate a segment leaves fastest (the lamella's normal, for an annulus hex the
+    radial one) removed, so the segment runs at constant natural coordinate across the layer's thickness."""
+    dxi = _natural_extent(jac, directions, length_mm)
+    worst = np.argmax(np.abs(dxi), axis=-1)  # (E, F)
+    grad = np.linalg.inv(jac)  # (E, 3, 3): row i is the gradient of xi_i (1/mm)
+    normal = np.take_along_axis(grad[:, None], worst[..., None, None], axis=2)[..., 0, :]  # (E, F, 3)
+    normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+    d = directions - np.sum(directions * normal, axis=-1, keepdims=True) * normal
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
 def embedded_segments(
-    points_mm: np.ndarray, hexes8: np.ndarray, directions: np.ndarray, length_mm: float = FIBRE_LENGTH_MM
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    points_mm: np.ndarray,
+    hexes8: np.ndarray,
+    directions: np.ndarray,
+    length_mm: float = FIBRE_LENGTH_MM,
+    hex_ids: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """End points of one segment per hex and direction, centred on the hex's centre (xi = 0) along the
     direction.  Its length is `length_mm` halved until both ends lie within the inner half of the hex
-    (|xi| <= `MAX_NATURAL`; a thin outer lamella or a skewed hex needs 1/2 or 1/4 of it).  Returns
-    ``(ends_mm (E, F, 2, 3), weights (E, F, 2, 8), halvings (E, F))``: each end lies where the hex's trilinear
-    map puts its natural coordinates, so ``ends = weights @ corners`` exactly (the tie is exact in the reference
-    state), and the segment's length is length_mm / 2**halvings to first order in the hex's distortion."""
+    (|xi| <= `MAX_NATURAL`; a thin outer lamella or a skewed hex needs 1/2 or 1/4 of it).  A direction that
+    crosses its hex's layer so steeply that even 1/2**MAX_HALVINGS of the length leaves the inner half (a disc wall
+    sheared across a thin outer ring: fibres run in their lamella, not across it) is replaced by its closest
+    direction in the layer (`in_lamella`).  Returns ``(ends_mm (E, F, 2, 3), weights (E, F, 2, 8), halvings (E, F),
+    in_layer (E, F) bool)``: each end lies where the hex's trilinear map puts its natural coordinates, so
+    ``ends = weights @ corners`` exactly (the tie is exact in the reference state), and the segment's length is
+    length_mm / 2**halvings to first order in the hex's distortion.  hex_ids: (E,) the ids an error names (default
+    0..E-1)."""
     corners = np.asarray(points_mm, dtype=np.float64)[np.asarray(hexes8, dtype=np.int64)]  # (E, 8, 3)
     jac = np.einsum("eki,kj->eij", corners, HEX8_NATURAL) / 8.0  # dx/dxi at xi = 0, (E, 3, 3)
-    half = 0.5 * length_mm * np.asarray(directions, dtype=np.float64)  # (E, F, 3)
-    dxi = np.linalg.solve(jac[:, None], half[..., None])[..., 0]  # (E, F, 3)
+    directions = np.asarray(directions, dtype=np.float64)  # (E, F, 3)
+    dxi = _natural_extent(jac, directions, length_mm)
+    in_layer = np.abs(dxi).max(axis=-1) > MAX_NATURAL * 2.0**MAX_HALVINGS
+    if in_layer.any():
+        e = np.flatnonzero(in_layer.any(axis=1))
+        projected = in_lamella(jac[e], directions[e], length_mm)
+        directions = directions.copy()
+        directions[e] = np.where(in_layer[e, :, None], projected, directions[e])
+        dxi[e] = _natural_extent(jac[e], directions[e], length_mm)
     extent = np.abs(dxi).max(axis=-1)
     halvings = np.maximum(0, np.ceil(np.log2(extent / MAX_NATURAL))).astype(np.int64)
     if halvings.max() > MAX_HALVINGS:
         worst = int(np.argmax(extent.max(axis=1)))
+        name = worst if hex_ids is None else int(np.asarray(hex_ids)[worst])
         raise ValueError(
-            f"annulus hex {worst} is too thin or distorted for a fibre spring: a {length_mm} mm segment reaches "
-            f"natural coordinate {extent.max():.1f}"
+            f"annulus hex {name} is too thin or distorted for a fibre spring: a {length_mm} mm segment in its "
+            f"layer reaches natural coordinate {extent.max():.1f}"
         )
     dxi = dxi / 2.0 ** halvings[..., None]
     xi = np.stack([-dxi, dxi], axis=2)  # (E, F, 2, 3)
     weights = trilinear_weights(xi)
     ends = np.einsum("efsk,ekj->efsj", weights, corners)
-    return ends, weights, halvings
+    return ends, weights, halvings, in_layer
 
 
 def fibre_force_n(stretch: np.ndarray, k1_mpa: float, k2: float, force_scale_mm2: float) -> np.ndarray:
@@ -135,16 +169,17 @@ def embedded_fibres(
     k2: float,
     angle_deg: float,
     length_mm: float = FIBRE_LENGTH_MM,
+    hex_ids: np.ndarray | None = None,
 ) -> EmbeddedFibres:
     """Two fibre springs per annulus hex (`hexes8` (E, 8), node ids into `points_mm`): the hex's disc axis
     a -> b (E, 3 each, mm) sets the families' directions, `k1_mpa` (E,) their stiffness (a radial gradient
-    per ring, or uniform); see the module docstring."""
+    per ring, or uniform); see the module docstring.  hex_ids: (E,) the hexes' ids in the model, for errors."""
     hexes8 = np.asarray(hexes8, dtype=np.int64)
     n_hex = len(hexes8)
     pts = np.asarray(points_mm, dtype=np.float64)
     centroids = pts[hexes8].mean(axis=1)
     dirs = fibre_directions(centroids, axis_a_mm, axis_b_mm, angle_deg)
-    ends, weights, halvings = embedded_segments(pts, hexes8, dirs, length_mm)
+    ends, weights, halvings, _ = embedded_segments(pts, hexes8, dirs, length_mm, hex_ids)
     rest = length_mm / 2.0**halvings  # (E, 2) nominal rest lengths
     scale = np.broadcast_to(np.asarray(k1_mpa, dtype=np.float64), (n_hex,))[:, None] * hex_volumes(pts, hexes8)[:, None]
     scale = scale / rest  # k1 V / L per spring (N): its table is this times 2 lambda (lambda^2 - 1) exp(k2 (...)^2)

@@ -115,7 +115,9 @@ def transfer_fields(
             if layer["kind"] == "disc":
                 continue
             # the S1 plate layer lies on the sacral plate: its own vertices carry its motion
-            verts = landmarks.body[layer["level"]] if layer["kind"] == "body" else landmarks.endplate_sup["S1"]
+            verts = (
+                landmarks.body[layer["level"]] if layer["kind"] == "body" else landmarks.endplate_surface("sup", "S1")
+            )
             hf[:, L] = _affine_plus_residual(tri_ssm.mean[verts], df_tri[:, verts], hex_pts[L * n2 : (L + 1) * n2])
         _interpolate_disc_fields(hf, hex_pts.reshape(len(layers), n2, 3), layers)
         fields[:, :n_hex] = hf.reshape(n_modes, -1, 3)

@@ -76,6 +76,28 @@ def _closest_points(points: np.ndarray, target: np.ndarray, faces: np.ndarray) -
     return closest
 
 
+def _ray_points(points: np.ndarray, centres: np.ndarray, target: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Each point moved along its ray from its layer's centre (in-layer, radial) to the nearest crossing of the
+    surface, inward or outward within the point's radius (mm); a ray that crosses nothing keeps its closest point.
+    Unlike the closest point, it keeps each node at its height on a waisted or bulging wall."""
+    import vtk
+
+    from spinecohort.mesh.vtk_mesh import surface
+
+    loc = vtk.vtkCellLocator()
+    loc.SetDataSet(surface(target, faces))
+    loc.BuildLocator()
+    out = _closest_points(points, target, faces)
+    t, x, pc, sub = vtk.reference(0.0), [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], vtk.reference(0)
+    for k, (p, c) in enumerate(zip(points, centres)):  # one C++ call per direction of a wall node
+        best = np.inf
+        for end in (c, p + (p - c)):
+            if loc.IntersectWithLine(p, end, 1e-9, t, x, pc, sub) and np.linalg.norm(np.subtract(x, p)) < best:
+                best = float(np.linalg.norm(np.subtract(x, p)))
+                out[k] = x
+    return out
+
+
 def ray_weights(grid: OGrid, core_cells: int) -> tuple[np.ndarray, np.ndarray]:
     """For every 2-D O-grid node: the outer-boundary node of its ray (-1 for core nodes) and its radial
     fraction along the ray (0 on the core block's boundary, 1 on the outer boundary)."""
@@ -95,14 +117,19 @@ def _project(
     points: np.ndarray,
     groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     spread: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    wall_centres: np.ndarray | None = None,
 ) -> np.ndarray:
     """Snap each group of surface nodes onto its own target surface (endplate nodes onto the endplate
     patch, wall nodes onto the wall).  ``spread`` = (node ids, their outer node, weight): interior ring nodes
     take their ray's outer-node correction times their radial fraction, so thin shell rings move with the
-    surface instead of being crushed."""
+    surface instead of being crushed.  wall_centres: (n, 3) the layer centre of each node of the last group (the
+    wall), which then moves along its ray (`_ray_points`) instead of to its closest point."""
     out = points.copy()
-    for ids, tgt, faces in groups:
-        out[ids] = _closest_points(points[ids], tgt, faces)
+    for k, (ids, tgt, faces) in enumerate(groups):
+        if wall_centres is not None and k == len(groups) - 1:
+            out[ids] = _ray_points(points[ids], wall_centres, tgt, faces)
+        else:
+            out[ids] = _closest_points(points[ids], tgt, faces)
     if spread is not None:
         ids, outer, w = spread
         out[ids] = points[ids] + w[:, None] * (out[outer] - points[outer])
@@ -120,10 +147,11 @@ def _projection_groups(shape, grid, core_cells, name, landmarks, mean_points, me
     if name == "S1":
         return [(ids.ravel(), target, faces)], None
     groups = []
-    for layer, key in ((0, "endplate_inf"), (nl - 1, "endplate_sup")):
-        patch = getattr(landmarks, key)[name]
+    # the whole endplate (a real one's concave surface, not only its rim band): the layer's core nodes land on it
+    caps = [landmarks.endplate_surface(side, name) for side in ("inf", "sup")]
+    for layer, patch in zip((0, nl - 1), caps):
         groups.append((ids[layer], mean_points[patch], _faces_of(mean_faces, patch)))
-    caps = np.concatenate([landmarks.endplate_inf[name], landmarks.endplate_sup[name]])
+    caps = np.concatenate(caps)
     wall_faces = _faces_of(mean_faces, landmarks.body[name])
     keep = ~np.isin(landmarks.body[name][wall_faces], caps).all(1)  # triangles not lying in a cap
     groups.append((ids[1:-1, grid.outer].ravel(), target, wall_faces[keep]))
@@ -210,7 +238,7 @@ def morph_template(
         (lv, [i for i, ly in enumerate(layers) if ly["kind"] == "body" and ly["level"] == lv], landmarks.body[lv])
         for lv in LEVELS
     ]
-    parts.append(("S1", [0], landmarks.endplate_sup["S1"]))
+    parts.append(("S1", [0], landmarks.endplate_surface("sup", "S1")))
     for k, (name, layer_ids, target_ids) in enumerate(parts):
         block = hex_layers[layer_ids]  # (nl, n2, 3)
         is_surface = np.zeros(block.shape[:2], bool)
@@ -238,7 +266,15 @@ def morph_template(
                 target,
                 faces,
             )
-            moved = _project(moved, groups, spread)
+            projected = _project(moved, groups, spread)
+            block_hexes = _block_hexes(grid, block.shape[0])
+            if name != "S1" and scaled_jacobian(projected, block_hexes).min() <= 0:
+                # closest points slide along a waisted real wall by more than a layer's height: the wall nodes
+                # go along their in-layer rays instead, keeping their heights
+                layer_of = groups[-1][0] // block.shape[1]
+                centres = moved.reshape(block.shape).mean(axis=1)[layer_of]
+                projected = _project(moved, groups, spread, wall_centres=centres)
+            moved = projected
         dist = surface_distance(moved[surf_ids], target, faces)
         hex_layers[layer_ids] = moved.reshape(block.shape)
         rows.append(

@@ -364,10 +364,12 @@ def build_template(
 
     # --- initial placement of the hex nodes from the endplate frames of the shape
     pts = mean_points
-    eps = {("S1", "sup"): fit_endplate(pts[landmarks.endplate_sup["S1"]])}
+    # the whole endplates: a rim band alone (a real endplate's clinical patch) can be a partial ring whose extents
+    # differ from the facing endplate's by centimetres, which shears the disc's outer ring
+    eps = {("S1", "sup"): fit_endplate(pts[landmarks.endplate_surface("sup", "S1")])}
     for lv in LEVELS:
-        eps[(lv, "sup")] = fit_endplate(pts[landmarks.endplate_sup[lv]])
-        eps[(lv, "inf")] = fit_endplate(pts[landmarks.endplate_inf[lv]])
+        eps[(lv, "sup")] = fit_endplate(pts[landmarks.endplate_surface("sup", lv)])
+        eps[(lv, "inf")] = fit_endplate(pts[landmarks.endplate_surface("inf", lv)])
     hex_nodes = np.empty((n_layers, n2, 3))
     for L, layer in enumerate(layers):
         if layer["kind"] == "s1":
