@@ -55,8 +55,8 @@ from spinecohort.anatomy.landmark_rules import similarity_from_points, vertebra_
 from spinecohort.anatomy.reference import save_reference
 from spinecohort.anatomy.surface import (
     check_surface,
-    intersections_between,
     from_polydata,
+    intersections_between,
     remesh_isotropic,
     self_intersections,
     sphere_fit,
@@ -204,6 +204,31 @@ def femoral_head(args, side: str, centre: np.ndarray, radius: float, log) -> tup
     return v + centre, f, np.flatnonzero(head)
 
 
+def separate_pair(parts: dict, carriers: dict, column: list, upper: str, lower: str, gap_mm: float) -> dict:
+    """Separate two neighbouring vertebrae: push the articular surface of one out of the other
+    (:func:`contacts.push_out`) when that leaves no crossing and folds no triangle; otherwise translate the
+    upper bone and all above it (``column``) rigidly along the line between the two body centroids in
+    ``gap_mm`` / 2 steps until the bones neither cross nor come closer than ``gap_mm``."""
+    before = {"crossings": intersections_between(*parts[upper], *parts[lower])}
+    for mover, fixed in ((upper, lower), (lower, upper)):
+        va, left = push_out(parts[mover], parts[fixed], gap_mm)
+        if left == 0 and self_intersections(va, parts[mover][1]) == 0:
+            n = int(np.sum(np.any(va != parts[mover][0], axis=1)))
+            parts[mover] = (va, parts[mover][1])
+            return {**before, "moved": mover, "vertices": n, "left": 0}
+    axis = parts[upper][0].mean(0) - parts[lower][0].mean(0)
+    axis /= np.linalg.norm(axis)
+    shift, left = 0.0, before["crossings"]
+    while left or cKDTree(parts[lower][0]).query(parts[upper][0])[0].min() < gap_mm:
+        shift += 0.5 * gap_mm
+        for lv in column:
+            parts[lv] = (parts[lv][0] + 0.5 * gap_mm * axis, parts[lv][1])
+            if lv in carriers:
+                carriers[lv] += 0.5 * gap_mm * axis
+        left = intersections_between(*parts[upper], *parts[lower])
+    return {**before, "moved": f"{column[0]}-{upper} (rigid)", "shift_mm": shift, "left": left}
+
+
 def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -> None:
     """Open the thoracic disc spaces, then push every overlapping articular surface out of its partner
     (:mod:`spinecohort.anatomy.contacts`); parts and carriers are updated in place."""
@@ -218,28 +243,24 @@ def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -
         parts[lv] = (p, parts[lv][1])
     names = column + ["L2", "L3", "L4", "L5", "S1"]
     moved = {}
-    for upper, lower in zip(names, names[1:]):
-        va, left = push_out(parts[upper], parts[lower], args.joint_gap_mm)
-        key = upper
-        if left:  # a thin process of the lower bone through the upper one: move the lower one instead
-            vb, left_b = push_out(parts[lower], parts[upper], args.joint_gap_mm)
-            if left_b < left:
-                va, left, key = vb, left_b, lower
-        moved[f"{upper}-{lower}"] = {
-            "moved": key,
-            "vertices": int(np.sum(np.any(va != parts[key][0], axis=1))),
-            "left": left,
-        }
-        parts[key] = (va, parts[key][1])
+    for k, (upper, lower) in enumerate(zip(names, names[1:])):
+        moved[f"{upper}-{lower}"] = separate_pair(parts, carriers, names[: k + 1], upper, lower, args.joint_gap_mm)
     for other in ("S1", "femur_L", "femur_R"):
-        # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur
-        va, left = push_out(parts["pelvis"], parts[other], args.joint_gap_mm)
+        # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur; at the
+        # sacro-iliac joint the sacrum's auricular surface moves when the hip bone cannot be pushed out cleanly
+        candidates = [("pelvis", other)] + ([(other, "pelvis")] if other == "S1" else [])
+        for mover, fixed in candidates:
+            va, left = push_out(parts[mover], parts[fixed], args.joint_gap_mm, max_rounds=12)
+            folds = self_intersections(va, parts[mover][1])
+            if left == 0 and folds == 0:
+                break
         moved[f"pelvis-{other}"] = {
-            "moved": "pelvis",
-            "vertices": int(np.sum(np.any(va != parts["pelvis"][0], axis=1))),
+            "moved": mover,
+            "vertices": int(np.sum(np.any(va != parts[mover][0], axis=1))),
             "left": left,
+            "self_intersections": folds,
         }
-        parts["pelvis"] = (va, parts["pelvis"][1])
+        parts[mover] = (va, parts[mover][1])
     log["separation"] = moved
     for k, c in moved.items():
         print(f"separate {k:16s}", json.dumps(c), flush=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from spinecohort.cohort.alignment import CRITERIA
 from spinecohort.cohort.real import generate_real_cohort, reference_frames
@@ -41,3 +42,35 @@ def test_reference_discs_are_open():
     fr = reference_frames(load_reference())
     assert (fr.disc_height > 3.0).all()  # every central disc height of the reference, mm
     assert (fr.body_height > 10.0).all()
+
+
+def test_patient_bones_do_not_cross_and_discs_stay_open(cohort):
+    from spinecohort.anatomy.contacts import adjacent_contacts
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import MIN_BODY_GAP_MM, first_use_reference
+
+    ref = first_use_reference(load_reference())
+    body = ref.region == 0
+    for k, v in enumerate(cohort.vertices):
+        c = adjacent_contacts(v, cohort.faces, ref.level, ref.region)
+        for pair, val in c.items():
+            if pair == "S1-pelvis":
+                continue  # the reference's own sacro-iliac crossings, carried rigidly (test_anatomy)
+            # every joint is opened until its bones do not cross (VTK collision test, triangle against triangle)
+            assert val["crossings"] == 0, (k, pair, val)
+            assert val["min_gap_mm"] > 0.0, (k, pair)
+        for i in range(16):  # closest body-to-body distance across every disc T1-T2 .. L4-L5, mm
+            a, b = v[body & (ref.level == i)], v[body & (ref.level == i + 1)]
+            assert cKDTree(a).query(b)[0].min() >= MIN_BODY_GAP_MM - 1e-9, (k, i)
+
+
+def test_pelvic_incidence_follows_the_pelvis_shape():
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import PI_RANGE_DEG, _pelvic_frame, first_use_reference, turn_for_pi
+
+    fr = reference_frames(first_use_reference(load_reference()))
+    pis = np.array([40.0, 58.0, 70.0])
+    # the inverted turn gives back the PI asked for (interpolated on a 0.5 deg grid of turns: within 0.1 deg)
+    got = [_pelvic_frame(fr, t)[-1] for t in turn_for_pi(fr, pis)]
+    assert np.abs(np.array(got) - pis).max() < 0.1
+    assert PI_RANGE_DEG[0] <= 40.0 and PI_RANGE_DEG[1] >= 70.0
