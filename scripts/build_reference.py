@@ -204,32 +204,40 @@ def femoral_head(args, side: str, centre: np.ndarray, radius: float, log) -> tup
     return v + centre, f, np.flatnonzero(head)
 
 
-def separate_pair(parts: dict, carriers: dict, column: list, upper: str, lower: str, gap_mm: float) -> dict:
-    """Separate two neighbouring vertebrae: push the articular surface of one out of the other
-    (:func:`contacts.push_out`) when that leaves no crossing and folds no triangle; otherwise translate the
-    upper bone and all above it (``column``) rigidly along the line between the two body centroids in
-    ``gap_mm`` / 2 steps until the bones neither cross nor come closer than ``gap_mm``."""
-    before = {"crossings": intersections_between(*parts[upper], *parts[lower])}
-    for mover, fixed in ((upper, lower), (lower, upper)):
-        va, left = push_out(parts[mover], parts[fixed], gap_mm)
-        if left == 0 and self_intersections(va, parts[mover][1]) == 0:
-            n = int(np.sum(np.any(va != parts[mover][0], axis=1)))
-            parts[mover] = (va, parts[mover][1])
-            return {**before, "moved": mover, "vertices": n, "left": 0}
+#: the largest rigid opening (mm) of a joint before the push-out is tried
+MAX_RIGID_MM = 6.0
+
+
+def separate_pair(parts: dict, followers: dict, column: list, upper: str, lower: str, gap_mm: float) -> dict:
+    """Separate two neighbouring vertebrae.  At growing rigid openings (the upper bone and all above it,
+    ``column``, translated along the line between the two centroids in ``gap_mm`` steps, with the meshes in
+    ``followers[level]``: label carriers, body and facet patches), push the articular surface of one bone out
+    of the other (:func:`contacts.push_out`); the first opening at which the bones do not cross, or at which
+    the push-out leaves no crossing and folds no triangle, is kept."""
+    crossings = intersections_between(*parts[upper], *parts[lower])
     axis = parts[upper][0].mean(0) - parts[lower][0].mean(0)
     axis /= np.linalg.norm(axis)
-    shift, left = 0.0, before["crossings"]
-    while left or cKDTree(parts[lower][0]).query(parts[upper][0])[0].min() < gap_mm:
-        shift += 0.5 * gap_mm
-        for lv in column:
-            parts[lv] = (parts[lv][0] + 0.5 * gap_mm * axis, parts[lv][1])
-            if lv in carriers:
-                carriers[lv] += 0.5 * gap_mm * axis
+    shift = 0.0
+    while True:
         left = intersections_between(*parts[upper], *parts[lower])
-    return {**before, "moved": f"{column[0]}-{upper} (rigid)", "shift_mm": shift, "left": left}
+        if left == 0 and cKDTree(parts[lower][0]).query(parts[upper][0])[0].min() >= gap_mm:
+            return {"crossings": crossings, "moved": f"{column[0]}-{upper}", "shift_mm": shift, "left": 0}
+        for mover, fixed in ((upper, lower), (lower, upper)):
+            va, left = push_out(parts[mover], parts[fixed], gap_mm)
+            if left == 0 and self_intersections(va, parts[mover][1]) == 0:
+                n = int(np.sum(np.any(va != parts[mover][0], axis=1)))
+                parts[mover] = (va, parts[mover][1])
+                return {"crossings": crossings, "moved": mover, "vertices": n, "shift_mm": shift, "left": 0}
+        if shift >= MAX_RIGID_MM:
+            raise RuntimeError(f"{upper}-{lower}: still {left} crossings after a {shift} mm opening")
+        shift += gap_mm
+        for lv in column:
+            parts[lv] = (parts[lv][0] + gap_mm * axis, parts[lv][1])
+            for mesh in followers.get(lv, []):
+                mesh += gap_mm * axis
 
 
-def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -> None:
+def separate_bones(args, parts: dict, carriers: dict, bodies: dict, facets: dict, log: dict) -> None:
     """Open the thoracic disc spaces, then push every overlapping articular surface out of its partner
     (:mod:`spinecohort.anatomy.contacts`); parts and carriers are updated in place."""
     l1_body = inside_or_near(parts["L1"][0], *bodies["L1"], BODY_TOLERANCE_MM)
@@ -242,9 +250,12 @@ def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -
         carriers.get(lv, p)[:] += p[0] - b  # the same translation for the label carrier
         parts[lv] = (p, parts[lv][1])
     names = column + ["L2", "L3", "L4", "L5", "S1"]
+    followers = {lv: [carriers[lv]] for lv in carriers}
+    for lv in names[12:]:
+        followers[lv] = [bodies[lv][0]] + [facets[f"{lv}_{s}"][0] for s in ("left", "right") if f"{lv}_{s}" in facets]
     moved = {}
     for k, (upper, lower) in enumerate(zip(names, names[1:])):
-        moved[f"{upper}-{lower}"] = separate_pair(parts, carriers, names[: k + 1], upper, lower, args.joint_gap_mm)
+        moved[f"{upper}-{lower}"] = separate_pair(parts, followers, names[: k + 1], upper, lower, args.joint_gap_mm)
     for other in ("S1", "femur_L", "femur_R"):
         # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur; at the
         # sacro-iliac joint the sacrum's auricular surface moves when the hip bone cannot be pushed out cleanly
@@ -325,7 +336,7 @@ def main(argv=None) -> int:
         hv, hf, cap = femoral_head(args, side, c, r - args.joint_space_mm, log)
         parts[f"femur_{side}"] = (hv, hf)
         heads[side] = cap
-    separate_bones(args, parts, carriers, bodies, log)
+    separate_bones(args, parts, carriers, bodies, facets, log)
     log["checks"] = {k: check_surface(*vf) for k, vf in parts.items()}
     for k, c in log["checks"].items():
         print(f"{k:9s}", json.dumps(c), flush=True)

@@ -135,3 +135,20 @@ def adjacent_contacts(vertices: np.ndarray, faces: np.ndarray, level: np.ndarray
         n, gap = pair_contact(vertices, pair)
         out[pair[0]] = {"crossings": n, "min_gap_mm": gap}
     return out
+
+
+def cohort_contacts(vertices: np.ndarray, faces: np.ndarray, level: np.ndarray, region: np.ndarray):
+    """Per neighbouring-bone pair over a cohort (P, N, 3) in the reference topology: patients with crossing
+    triangles, the most crossing pairs in one patient and the closest vertex gap (mm) of any patient."""
+    import pandas as pd
+
+    pairs = bone_pairs(level, region, vertices[0, :, 0], faces)
+    res = np.array([[pair_contact(v, pair) for pair in pairs] for v in vertices])  # (P, pairs, 2)
+    return pd.DataFrame(
+        {
+            "patients_crossing": (res[:, :, 0] > 0).sum(0),
+            "max_crossings": res[:, :, 0].max(0).astype(int),
+            "min_gap_mm": res[:, :, 1].min(0),
+        },
+        index=[p[0] for p in pairs],
+    )
