@@ -75,3 +75,28 @@ def test_pelvic_incidence_follows_the_pelvis_shape():
     got = [_pelvic_frame(fr, t)[-1] for t in turn_for_pi(fr, pis)]
     assert np.abs(np.array(got) - pis).max() < 0.1
     assert PI_RANGE_DEG[0] <= 40.0 and PI_RANGE_DEG[1] >= 70.0
+
+
+def test_rigid_column_reaches_the_drawn_lordosis_and_kyphosis():
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import (
+        aim,
+        draw_real_patient,
+        first_use_reference,
+        joint_pivots,
+        pose_column,
+        pose_truth,
+    )
+
+    ref = first_use_reference(load_reference())
+    fr, pivots = reference_frames(ref), joint_pivots(ref)
+    s1 = ref.vertices[ref.landmarks.rim_sup["S1"]]
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        p, turn = draw_real_patient(rng, "x", fr)
+        pose, q = pose_column(aim(p, turn, fr, pivots, s1), turn, fr, pivots, np.zeros(17))
+        t = pose_truth(q, pose, fr, pose.sacrum(fr, s1))
+        # the reference's body wedges shift the span ends; the aimed chain compensates them (aim's docstring)
+        assert abs(t["LL"] - p.LL) < 0.1 and abs(t["TK_T4T12"] - p.TK_T4T12) < 0.1
+        assert abs(t["TK_T1T12"] - t["TK_T4T12"] - p.TK_T1T4) < 0.1
+        assert abs(t["PI"] - p.PI) < 1e-9 and abs(t["PT"] - p.PT) < 1e-9

@@ -297,6 +297,20 @@ def pose_truth(p: PatientParameters, pose: Pose, fr: ReferenceFrames, s1_rim: np
     return truth
 
 
+def aim(p: PatientParameters, turn_deg: float, fr: ReferenceFrames, pivots: np.ndarray, s1_rim: np.ndarray):
+    """The patient with its chain targets corrected so that the rigid column has the drawn LL, T4-T12 and
+    T1-T4 kyphosis: the reference's own body wedges (kept by the rigid vertebrae) shift the endplates at the
+    ends of each span from the chain's; two fixed-point steps leave under 0.1 deg."""
+    goal = {"LL": p.LL, "TK_T4T12": p.TK_T4T12, "TK_T1T4": p.TK_T1T4}
+    q = p
+    for _ in range(3):
+        pose, posed = pose_column(q, turn_deg, fr, pivots, np.zeros(len(LEVELS)))
+        t = pose_truth(posed, pose, fr, pose.sacrum(fr, s1_rim))
+        got = {"LL": t["LL"], "TK_T4T12": t["TK_T4T12"], "TK_T1T4": t["TK_T1T12"] - t["TK_T4T12"]}
+        q = replace(q, **{k: getattr(q, k) + goal[k] - got[k] for k in goal})
+    return q
+
+
 def pose_vertices(pose: Pose, ref: Reference, fr: ReferenceFrames, pelvis_w: np.ndarray) -> np.ndarray:
     """(N, 3) mm: every vertebra by its similarity, the pelvis turned by its weights then placed."""
     v = ref.vertices
@@ -313,11 +327,15 @@ def pose_vertices(pose: Pose, ref: Reference, fr: ReferenceFrames, pelvis_w: np.
 #: is opened along its disc axis (the imposed disc height grows, so the truth follows)
 MIN_BODY_GAP_MM = 1.0
 OPEN_STEP_MM = 0.5
+#: the most a joint is opened (mm); a patient whose joint needs more is not drawn (at L5-S1 a large coronal
+#: tilt of the disc, the lower end of a long curve, presses the L5 inferior facet into the sacrum)
+MAX_OPEN_MM = 5.0
 
 
-def separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies, max_open_mm: float = 8.0):
+def separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies, max_open_mm: float = MAX_OPEN_MM):
     """Pose a patient with every joint from L5-S1 upwards opened in ``OPEN_STEP_MM`` steps until its two bones
-    do not cross and their bodies keep ``MIN_BODY_GAP_MM``; returns vertices, pose, patient, openings (mm)."""
+    do not cross and their bodies keep ``MIN_BODY_GAP_MM``; returns vertices, pose, patient, openings (mm), or
+    None when a joint needs more than ``max_open_mm``."""
     from spinecohort.anatomy.contacts import pair_contact
 
     opening = np.zeros(len(LEVELS))
@@ -332,8 +350,10 @@ def separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies, max_open_mm: flo
             v[idx] = pose.vertebra(i, ref.vertices[idx])
             crossing, _ = pair_contact(v, pairs[i])
             gap = float(lower.query(v[bodies[i]])[0].min())
-            if (crossing == 0 and gap >= MIN_BODY_GAP_MM) or opening[i] >= max_open_mm:
+            if crossing == 0 and gap >= MIN_BODY_GAP_MM:
                 break
+            if opening[i] >= max_open_mm:
+                return None  # a joint this far apart is no longer a disc: the caller draws another patient
             opening[i] += OPEN_STEP_MM
     return v, pose, q, opening
 
@@ -397,25 +417,38 @@ def generate_real_cohort(
     bodies.append(np.flatnonzero(ref.region == 12))  # the S1 plate region
     s1_rim_ref = ref.vertices[ref.landmarks.rim_sup["S1"]]
     rng = np.random.default_rng(seed)
-    verts, rows, n_cand = [], [], 0
+    verts, rows, n_cand, n_apart, openings = [], [], 0, 0, []
     while len(verts) < n_patients:
         if n_cand >= max_candidates:
             raise RuntimeError(f"only {len(verts)} of {max_candidates} candidates met the criteria {criteria}")
         n_cand += 1
         p, turn = draw_real_patient(rng, f"P{len(verts) + 1:02d}", fr)
+        p = aim(p, turn, fr, pivots, s1_rim_ref)
         pose, q = pose_column(p, turn, fr, pivots, np.zeros(len(LEVELS)))
         if not meets_criteria(pose_truth(q, pose, fr, pose.sacrum(fr, s1_rim_ref)), criteria):
             continue  # cheap screen on the closed column; the opened one is checked again below
-        v, pose, q, opening = separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies)
+        posed = separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies)
+        if posed is None:
+            n_apart += 1
+            continue
+        v, pose, q, opening = posed
+        openings.append(opening)
         truth = pose_truth(q, pose, fr, pose.sacrum(fr, s1_rim_ref))
         if not meets_criteria(truth, criteria):
             continue
         placement = Rotation.from_euler("z", q.axial_rotation_deg, degrees=True).as_matrix()
         verts.append(v @ placement.T + q.translation)
         rows.append({"ID": q.ID, "age": round(q.age, 1), "sex": q.sex, **truth})
-        log.debug("%s: joints opened by up to %.1f mm", q.ID, opening.max())
         if progress is not None:
             progress(len(verts), n_patients)
     log.info("accepted %d of %d candidates (%.0f %%)", n_patients, n_cand, 100 * n_patients / n_cand)
+    opened = np.array(openings)
+    log.info(
+        "%d candidates needed a joint opened over %.1f mm; joints opened by %.2f mm on average, at most %.1f mm",
+        n_apart,
+        MAX_OPEN_MM,
+        opened.mean(),
+        opened.max(),
+    )
     ids = [r["ID"] for r in rows]
     return SyntheticCohort(ids, np.stack(verts), ref.faces, ref.landmarks, pd.DataFrame(rows), n_cand)
