@@ -12,6 +12,7 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/register.smk"
 include: "workflow/rules/cohort.smk"
 include: "workflow/rules/ssm.smk"
 include: "workflow/rules/measure.smk"

@@ -1,11 +1,27 @@
-"""Benchmark spinecohort.mesh.registration: BCPD time/iterations/final distance at 2k, 10k, 30k surface points.
+"""Benchmark spinecohort.mesh.registration: speed, correspondence error against the truth, one patient's time.
 
-Run: python benchmarks/bench_registration.py   (about 2-4 minutes on 2 cores)
+Run: python benchmarks/bench_registration.py [speed|correspondence|patient]   (all three without argument)
+
+* speed (2-4 minutes on 2 cores): BCPD time/iterations/final distance at 2k, 10k, 30k surface points.
+* correspondence (~1 minute): the synthetic reference's L3 onto a deformed (five 2-5 mm bumps), rotated
+  (10 deg), shifted and re-triangulated copy (spinecohort.testing.deformed_bone_case): correspondence error
+  mean / 95th / max against the known truth for the rigid fit, BCPD with gamma 2 and 1, narrower kernels,
+  two layers, and pycpd's deformable CPD (if installed: pip install pycpd; not a project dependency) at
+  the same normalisation.
+* real PATH: the same comparison on a real bone read from PATH in metres, e.g. the Visible Human L3 of
+  Remus et al. 2021 (github.com/RemusR9/artisynth_lumbosacralSpineModel, file hybrid_LSS_model/src/artisynth/
+  models/passiveComponents_PlosOne/geometry/RB/L3_Schrumpfverpacken.obj; not vendored here).
+* patient (~25 s per patient of one core; run with OMP_NUM_THREADS=1): spinecohort.cohort.register on
+  coarse synthetic patients brought per bone (re-triangulated, shuffled): CPU seconds of the placement
+  and of the bones, surface distances, correspondence error, PI/PT/SS/LL error against the generator.
+
+Speed section:
 Case: a vertebral-body-sized superellipsoid (40 x 30 x 24 mm) as source; the target is the same shape
 sampled differently and moved by a smooth Gaussian RBF field (10 mm wide, ~1.5 mm mean).  Both sets are
 voxel-downsampled (BCPD++) before registration; the field is then applied to every source point.
 """
 
+import sys
 import time
 
 import numpy as np
@@ -26,7 +42,7 @@ def field(p):
     return np.exp(-((p[:, None] - centres[None]) ** 2).sum(-1) / (2 * 10.0**2)) @ amps
 
 
-def main():
+def speed():
     print("surface_distance (vtkImplicitPolyDataDistance, exact):")
     tv, tf = body(30_000)
     q = tv + np.random.default_rng(0).normal(0, 1.0, tv.shape)
@@ -73,5 +89,114 @@ def main():
     )
 
 
+def _errors(moved, truth):
+    e = np.linalg.norm(moved - truth, axis=1)
+    return f"{e.mean():6.3f} {np.percentile(e, 95):6.3f} {e.max():6.2f}"
+
+
+def correspondence():
+    for bone, seed in (("L3", 3), ("L3", 7), ("T8", 3), ("hip_left", 3)):
+        _correspondence(bone, seed)
+
+
+def real(path, unit_mm=1000.0):
+    """A real bone from a file (e.g. the Visible Human L3 of Remus et al. 2021, in metres: see the module doc)."""
+    from spinecohort.cohort.bones import read_mesh
+    from spinecohort.testing import deformed_copy
+
+    pts, faces = read_mesh(path)
+    pts = pts * unit_mm
+    _compare(f"{path} (seed 3)", pts, *deformed_copy(pts, faces, seed=3))
+
+
+def _correspondence(bone, seed):
+    from spinecohort.testing import deformed_bone_case
+
+    src, _, truth, target, tf = deformed_bone_case(bone, seed=seed)
+    _compare(f"{bone} (seed {seed})", src, truth, target, tf)
+
+
+def _compare(name, src, truth, target, tf):
+    print(f"{name}: {len(src)} source points, {len(target)} target points (re-triangulated, shuffled)")
+    print(f"  {'method':44s} {'CPU s':>6} {'mean':>6} {'p95':>6} {'max':>6} {'surface mm':>10}")
+
+    def row(name, fn):
+        t0 = time.process_time()
+        moved = fn()
+        dt = time.process_time() - t0
+        d = np.mean(reg.surface_distance(moved, target, tf))
+        print(f"  {name:44s} {dt:6.1f} {_errors(moved, truth)} {d:10.3f}", flush=True)
+
+    rigid = reg.rigid_register(src, target, scale=True)
+    row(f"rigid CPD + ICP (scale {rigid.s:.3f})", lambda: rigid.transformed)
+    start = rigid.transformed
+    for kw in ({"gamma": 2.0}, {"gamma": 1.0}, {"gamma": 1.0, "beta": 1.0}, {"gamma": 1.0, "lam": 2.0}):
+        row(f"BCPD {kw}", lambda kw=kw: reg.nonrigid_register(start, target, **kw).deformed)
+    row(
+        "2 layers, the second restarted from all pairs",
+        lambda: (
+            reg.nonrigid_register(
+                reg.nonrigid_register(start, target, gamma=1.0).deformed, target, beta=1.0, gamma=2.0
+            ).deformed
+        ),
+    )
+    for layers in (2, 3):
+        row(
+            f"{layers} layers, each from the previous sigma",
+            lambda layers=layers: (
+                reg.multilayer_register(start, target, tf, bound=1e-9, max_layers=layers, gamma=1.0).deformed
+            ),
+        )
+    try:
+        from pycpd import DeformableRegistration
+    except ImportError:
+        print("  pycpd not installed: pip install pycpd for the peer's row")
+        return
+    centre = target.mean(0)
+    unit = np.sqrt(np.mean(np.sum((target - centre) ** 2, 1)))
+
+    def peer():
+        cpd = DeformableRegistration(X=(target - centre) / unit, Y=(start - centre) / unit, alpha=2.0, beta=2.0, w=0.1)
+        return cpd.register()[0] * unit + centre
+
+    row("pycpd 2.0 deformable CPD (alpha 2, beta 2, w 0.1)", peer)
+
+
+def patient(n=3):
+    from spinecohort.cohort.bones import BoneMesh, check_bone
+    from spinecohort.cohort.register import register_patient, synthetic_reference
+    from spinecohort.cohort.synthetic import generate_cohort
+    from spinecohort.cohort.user_folder import bone_meshes, retriangulate
+    from spinecohort.measure.spinopelvic import measure
+
+    ref = synthetic_reference("coarse")
+    c = generate_cohort(n, seed=5, resolution="coarse")
+    rng = np.random.default_rng(0)
+    print(f"reference: {len(ref.points)} vertices, 22 bones; patients re-triangulated per bone and shuffled")
+    for pid, pts in zip(c.ids, c.vertices):
+        pieces = [
+            check_bone(BoneMesh(name, *retriangulate(p, f, rng), name), pid, "mm")
+            for name, (p, f) in bone_meshes(pts, c.faces, ref.bone).items()
+        ]
+        t0 = time.process_time()
+        out, rep = register_patient(ref, pieces, pid, named=True)
+        total = time.process_time() - t0
+        m = measure(out[None], ref.landmarks).iloc[0]
+        row = c.table.set_index("ID").loc[pid]
+        err = ", ".join(f"{k} {m[k] - row[k]:+.2f}" for k in ("PI", "PT", "SS", "LL"))
+        print(
+            f"  {pid}: {total:.1f} s CPU (placement {rep.attrs['placement_cpu_s']:.1f} s, bones {rep.cpu_s.sum():.1f} s,"
+            f" slowest {rep.loc[rep.cpu_s.idxmax(), 'bone']} {rep.cpu_s.max():.1f} s); surface distance mean "
+            f"{rep.mean_mm.mean():.3f} mm (worst bone {rep.mean_mm.max():.3f}, back {rep.back_mean_mm.max():.3f}); "
+            f"correspondence {_errors(out, pts)} mm; error deg: {err}",
+            flush=True,
+        )
+
+
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == ["real"]:
+        real(sys.argv[2])
+        sys.exit(0)
+    sections = {"speed": speed, "correspondence": correspondence, "patient": patient}
+    for name in sys.argv[1:] or list(sections):
+        sections[name]()

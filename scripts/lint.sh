@@ -4,7 +4,7 @@
 #   - no history markers: a numbered work session or an issue number in a tracked *.py, *.md, *.yaml,
 #     *.smk, *.sh, *.toml or the Snakefile fails the gate, naming file:line (history lives in git and in
 #     CHANGELOG.md, which may name versions and link issues, never sessions);
-#   - module size: a module under src/ over 600 lines is reported (a warning for now).
+#   - module size: a module under src/ over 600 lines fails the gate.
 # Fix the style with
 #   .venv/bin/ruff check --fix src tests benchmarks workflow/scripts && .venv/bin/ruff format src tests benchmarks workflow/scripts && .venv/bin/snakefmt Snakefile workflow/rules
 set -euo pipefail
@@ -14,9 +14,6 @@ bin=${VENV:-.venv}/bin
 "$bin/ruff" format --check src tests benchmarks workflow/scripts scripts
 "$bin/snakefmt" --check Snakefile workflow/rules
 
-# Paths whose history markers are reported but do not fail the gate yet: src/ is cleaned on its own branch;
-# empty this list once that branch is merged.
-history_report_only=("src/")
 session_re='[Ss]ession [0-9]+'
 issue_re='(^|[^[:alnum:]_])[Ii]ssue #?[0-9]+'
 # Only tracked files: results/, .venv/ and .snakemake/ are ignored by git and never scanned.
@@ -30,14 +27,10 @@ for f in "${text_files[@]}"; do
     fi
     hits=$(sed '/^$/d' <<<"$hits" | sort -t: -k1,1n -u)
     [[ -z $hits ]] && continue
-    severity=error
-    for p in "${history_report_only[@]}"; do
-        [[ $f == "$p"* ]] && severity=warning
-    done
     while IFS= read -r line; do
-        echo "$severity: history marker (session or issue number) at $f:${line%%:*}: ${line#*:}" >&2
+        echo "error: history marker (session or issue number) at $f:${line%%:*}: ${line#*:}" >&2
     done <<<"$hits"
-    [[ $severity == error ]] && history_failed=1
+    history_failed=1
 done
 if ((history_failed)); then
     echo "lint: history markers found (say what the code is, not when it changed; history goes in CHANGELOG.md)" >&2
@@ -45,10 +38,16 @@ if ((history_failed)); then
 fi
 
 max_module_lines=600
+size_failed=0
 while IFS= read -r f; do
+    [[ -f $f ]] || continue
     n=$(wc -l <"$f")
     if ((n > max_module_lines)); then
-        echo "warning: $f has $n lines (> $max_module_lines): split it by concern" >&2
+        echo "error: $f has $n lines (> $max_module_lines): split it by concern" >&2
+        size_failed=1
     fi
 done < <(git ls-files -- 'src/*.py')
+if ((size_failed)); then
+    exit 1
+fi
 echo "lint: clean"

@@ -65,7 +65,7 @@ def test_missing_cohort_folder(tmp_path):
         validate_config(c, SCHEMA)
     (tmp_path / "empty").mkdir()
     c["cohort"]["folder"] = str(tmp_path / "empty")
-    with pytest.raises(ConfigError, match="contains no .stl file"):
+    with pytest.raises(ConfigError, match="holds no patient"):
         validate_config(c, SCHEMA)
 
 
@@ -77,6 +77,13 @@ def test_cohort_files_for_both_sources(tmp_path):
     c["cohort"].update(source="folder", folder=str(tmp_path), sheet="my.xlsx")
     for name in ("B.stl", "A.stl"):
         (tmp_path / name).write_bytes(b"")
+    # no landmark file: the meshes are registered (one job per patient), the reference gives the landmarks
+    f = cohort_files(c)
+    assert f["stls"] == ["results/registered/A.stl", "results/registered/B.stl"] and f["sheet"] == "my.xlsx"
+    assert f["landmarks"] == "results/registered/landmarks.json"
+    assert f["inputs"] == {"A": str(tmp_path / "A.stl"), "B": str(tmp_path / "B.stl")}
+    # with a landmark file the STLs are taken as corresponded
+    (tmp_path / "landmarks.json").write_text("{}")
     f = cohort_files(c)
     assert [Path(p).name for p in f["stls"]] == ["A.stl", "B.stl"] and f["sheet"] == "my.xlsx"
-    assert f["landmarks"] == str(tmp_path / "landmarks.json")
+    assert f["landmarks"] == str(tmp_path / "landmarks.json") and "inputs" not in f

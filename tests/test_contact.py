@@ -12,8 +12,8 @@ from spinecohort.measure.spinopelvic import measure
 from spinecohort.mesh.contact import disc_gaps, distraction_summary, level_offsets, resolve_contact
 from spinecohort.mesh.hex_ssm import contact_offsets, transfer_fields
 from spinecohort.mesh.quality.verdict import scaled_jacobian
-from spinecohort.store.shards import hex_landmarks, sample_points
 from spinecohort.store.zarr_store import grid_weights
+from spinecohort.virtual.shard_job import hex_landmarks, sample_points
 
 
 def plate(z, tilt_deg=0.0, n=7):

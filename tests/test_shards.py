@@ -11,7 +11,8 @@ from spinecohort.measure.tables import parse_range, query_models, tri_vs_hex_sum
 from spinecohort.mesh.hex_ssm import HexSSM, transfer_fields
 from spinecohort.mesh.quality.verdict import scaled_jacobian
 from spinecohort.mesh.repair import boundary_nodes
-from spinecohort.store.shards import (
+from spinecohort.store.zarr_store import ShardWriter, create_store, error_bound_mm, read_shard
+from spinecohort.virtual.shard_job import (
     _param_diff,
     check_and_repair,
     hex_landmarks,
@@ -20,7 +21,6 @@ from spinecohort.store.shards import (
     sample_points,
     shard_models_of,
 )
-from spinecohort.store.zarr_store import ShardWriter, create_store, error_bound_mm, read_shard
 
 LEVELS = [-1.0, 0.0, 1.0]  # 3 modes x 3 levels = 27 models, shards of 9: shard 1 = IDs 9..17, mean = 13
 N_MODES = 3
@@ -53,7 +53,7 @@ def one_pass(tmp_path_factory, ssm, hex_ssm, template, small_cohort):
         ssm, hex_ssm, template, w, ids, lm, hex_landmarks(template, lm), writer=writer, batch=6
     )
     writer.close()
-    # the tables are columns (the job writes them without pandas); read them as a user does
+    # the tables are columns; read them as a user does
     return path, ids, w, pd.DataFrame(quality), pd.DataFrame(params), pd.DataFrame(diff)
 
 
@@ -309,35 +309,28 @@ def test_per_model_table3_matches_the_pooled_summary_of_each_model(shard1, templ
 def test_the_shard_job_does_not_import_what_it_never_calls():
     """Start-up paid by every shard job: untangling (scipy.optimize, scipy.sparse, pyvista), template building
     (scipy.optimize, scipy.spatial.transform) and the hex-SSM transfer (scipy.spatial) import their modules
-    where they are used; measured ~0.8 s of the job's 1.9-2.3 s of imports (docs/reference/store-format.md)."""
+    where they are used; measured ~0.8 s of the job's 1.9-2.3 s of imports."""
     import subprocess
     import sys
 
-    heavy = ("pyvista", "vtk", "scipy.optimize", "scipy.sparse", "scipy.spatial", "pandas")
-    code = f"import sys; import spinecohort.store.shards; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
+    heavy = ("pyvista", "vtk", "scipy.optimize", "scipy.sparse", "scipy.spatial")
+    code = (
+        f"import sys; import spinecohort.virtual.shard_job; print(' '.join(m for m in {heavy!r} if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == []
 
 
-def test_shard_tables_are_written_as_pandas_writes_them(tmp_path):
-    """The shard job writes its tables from columns without pandas; the bytes are pandas' to_csv of the same
-    columns with that float_format (NaN empty, inf, -0.0, ints, bools, quoted strings with commas, quotes and
-    line breaks, a missing string, an empty table)."""
-    from spinecohort.store.columns import concat_columns, write_csv
+def test_concat_columns_joins_batches_in_order_and_refuses_other_columns():
+    """A shard's table is its batches' columns one after the other, in the first batch's column order."""
+    from spinecohort.store.columns import concat_columns
 
-    columns = {
-        "model_id": np.array([3, 4, 5]),
-        "angle": np.array([1.23456789, np.nan, -np.inf]),
-        "tiny": np.array([1e-12, 123456789.0, -0.0]),
-        "repaired": np.array([True, False, True]),
-        "repair_error": np.array(["", 'model_00004: "x", y', "a\nb"], dtype=object),
-        "note": np.array(["p", None, "r"], dtype=object),
-    }
+    columns = {"model_id": np.array([3, 4, 5]), "angle": np.array([1.5, np.nan, -np.inf])}
     halves = concat_columns([{k: v[:1] for k, v in columns.items()}, {k: v[1:] for k, v in columns.items()}])
-    for fmt in ("%.6g", "%.6f"):
-        for cols in (columns, halves, {k: v[:0] for k, v in columns.items()}):
-            write_csv(cols, tmp_path / "a.csv", fmt)
-            pd.DataFrame(cols).to_csv(tmp_path / "b.csv", index=False, float_format=fmt)
-            assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes(), fmt
-    with pytest.raises(ValueError, match="columns of different lengths"):
-        write_csv({"a": np.zeros(2), "b": np.zeros(3)}, tmp_path / "c.csv", "%g")
+    assert list(halves) == ["model_id", "angle"]
+    assert np.array_equal(halves["model_id"], [3, 4, 5]) and np.array_equal(
+        halves["angle"], columns["angle"], equal_nan=True
+    )
+    assert concat_columns([]) == {}
+    with pytest.raises(ValueError, match=r"part 1 has columns \['angle', 'model_id'\]"):
+        concat_columns([columns, {"angle": np.zeros(1), "model_id": np.zeros(1)}])

@@ -55,6 +55,19 @@ def _generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_folder(args: argparse.Namespace) -> int:
+    from spinecohort.cohort.register import bone_labels
+    from spinecohort.cohort.synthetic import generate_cohort
+    from spinecohort.cohort.user_folder import write_user_folder
+
+    c = generate_cohort(args.n, seed=args.seed, resolution=args.resolution, noise_mm=args.noise_mm)
+    bone = bone_labels(c.vertices[0], c.faces, c.landmarks)
+    written = write_user_folder(args.out, c.ids, c.vertices, c.faces, bone, c.table, args.per_bone, args.remesh_seed)
+    kind = "one folder per patient, one file per bone" if args.per_bone else "one mesh per patient"
+    print(f"{len(c.ids)} patients re-triangulated ({kind}), {len(written)} files -> {args.out}")
+    return 0
+
+
 def _check(args: argparse.Namespace) -> int:
     from spinecohort.cohort.loading import load_cohort
 
@@ -200,6 +213,20 @@ def _check_store(args: argparse.Namespace) -> int:
     # shard records as removed intermediates and would not rerun them
     Path(results.store_check).unlink(missing_ok=True)
     print(f"invalidated {len(problems)} shard(s) and their records in {records}: run snakemake to rebuild them")
+    return 0
+
+
+def _rom_table(args: argparse.Namespace) -> int:
+    import pandas as pd
+
+    from spinecohort.rom.tables import modes_markdown, sensitivity_markdown
+
+    default = {"sensitivity": "results/rom/sensitivity.csv", "modes": "results/rom/modes.csv"}[args.table]
+    path = Path(args.csv or default)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file (make it with: snakemake -j2 {default})")
+    table = pd.read_csv(path)
+    print((sensitivity_markdown if args.table == "sensitivity" else modes_markdown)(table), end="")
     return 0
 
 
@@ -364,6 +391,21 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--quiet", action="store_true")
     g.set_defaults(func=_generate)
 
+    w = sub.add_parser(
+        "write-cohort-folder",
+        help="write the synthetic cohort as a user brings one: every bone re-triangulated and shuffled, no landmarks",
+    )
+    w.add_argument("out", type=Path)
+    w.add_argument(
+        "--per-bone", action="store_true", help="one folder per patient, one file per bone (vertebrae_L3.stl)"
+    )
+    w.add_argument("--n", type=int, default=8, help="number of patients (default 8)")
+    w.add_argument("--seed", type=int, default=20240549)
+    w.add_argument("--resolution", choices=["coarse", "default", "fine"], default="coarse")
+    w.add_argument("--noise-mm", type=float, default=0.8)
+    w.add_argument("--remesh-seed", type=int, default=0, help="seed of the re-triangulation and shuffling")
+    w.set_defaults(func=_write_folder)
+
     c = sub.add_parser("check-cohort", help="validate a folder of patient STLs in correspondence")
     c.add_argument("folder", type=Path)
     c.add_argument("--sheet", type=Path)
@@ -441,6 +483,14 @@ def main(argv: list[str] | None = None) -> int:
     cs.add_argument("--rebuild", action="store_true", help="remove bad shards and their per-shard records")
     cs.add_argument("--records", type=Path, help="per-shard records folder (default: <store>/../shards)")
     cs.set_defaults(func=_check_store)
+
+    rt = sub.add_parser(
+        "rom-table",
+        help="the ROM sensitivity or mode-study table as Markdown, from results/rom/sensitivity.csv or modes.csv",
+    )
+    rt.add_argument("table", choices=["sensitivity", "modes"])
+    rt.add_argument("csv", nargs="?", help="the rule's CSV (default results/rom/<table>.csv)")
+    rt.set_defaults(func=_rom_table)
 
     q = sub.add_parser(
         "query",

@@ -14,6 +14,9 @@ from pathlib import Path
 #: the deck name the seed's Data Records use for the mean model
 TEMPLATE_DECK_NAME = "Mean_Model (Template).inp"
 
+#: mesh file suffixes a user's cohort folder may hold (what segmentation tools export; pyvista reads them all)
+MESH_SUFFIXES = (".stl", ".ply", ".obj", ".vtk", ".vtp")
+
 #: the SSM and virtual-cohort figures (figures.smk; the SSM curves come from ssm.smk)
 FIGURE_NAMES = (
     "ssm/compactness.png",
@@ -46,6 +49,25 @@ class Layout:
     @property
     def cohort(self) -> str:
         return self.path("cohort", "cohort.npz")
+
+    # stage 1, a user folder: the labeled reference registered onto each patient (register.smk)
+    @property
+    def reference(self) -> str:
+        return self.path("registered", "reference.npz")
+
+    @property
+    def reference_landmarks(self) -> str:
+        return self.path("registered", "landmarks.json")
+
+    def registered_stl(self, patient: str) -> str:
+        return self.path("registered", f"{patient}.stl")
+
+    def registered_report(self, patient: str) -> str:
+        return self.path("registered", f"{patient}.csv")
+
+    @property
+    def registration_report(self) -> str:
+        return self.path("registered", "report.csv")
 
     # stage 2: SSM
     @property

@@ -62,3 +62,39 @@ def perturbed_cube_grid(n: int = 10, seed: int = 0) -> tuple[np.ndarray, np.ndar
     X += rng.uniform(-0.22, 0.22, X.shape)
     X[rng.choice(len(X), 30, replace=False)] += rng.normal(0.0, 1.0, (30, 3))
     return X, H
+
+
+def deformed_bone_case(bone: str = "L3", seed: int = 3, **kwargs):
+    """A bone of the synthetic reference (coarse) and its :func:`deformed_copy`: ``(source, faces, truth,
+    target, target_faces)`` in mm."""
+    from spinecohort.cohort.register import synthetic_reference
+
+    ref = synthetic_reference("coarse")
+    src, faces = ref.points[ref.vertices_of(bone)], ref.faces_of(bone)
+    return (src, faces, *deformed_copy(src, faces, seed, **kwargs))
+
+
+def deformed_copy(
+    src: np.ndarray, faces: np.ndarray, seed: int = 3, n_bumps: int = 5, width_mm: float = 12.0, angle_deg: float = 10.0
+):
+    """A deformed, moved, re-triangulated copy of a surface (mm), the truth known per point.
+
+    The copy: ``n_bumps`` smooth Gaussian bumps (``width_mm`` wide, 2-5 mm each), a rotation of ``angle_deg``
+    about an oblique axis through the centroid, a (5, -3, 2) mm shift; then subdivision + quadric decimation
+    (no point of the copy is a source point) and shuffled points and triangles.  Returns ``(truth, target,
+    target_faces)``; ``truth[i]`` is where ``src[i]`` went."""
+    from scipy.spatial.transform import Rotation
+
+    from spinecohort.cohort.user_folder import retriangulate
+
+    rng = np.random.default_rng(seed)
+    centre = src.mean(0)
+    amps = rng.normal(size=(n_bumps, 3))
+    amps *= (rng.uniform(2, 5, n_bumps) / np.linalg.norm(amps, axis=1))[:, None]
+    centres = src[rng.choice(len(src), n_bumps, replace=False)]
+    bumps = np.exp(-np.sum((src[:, None] - centres[None]) ** 2, axis=-1) / (2 * width_mm**2)) @ amps
+    axis = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
+    rot = Rotation.from_rotvec(np.radians(angle_deg) * axis).as_matrix()
+    truth = (src + bumps - centre) @ rot.T + centre + [5.0, -3.0, 2.0]
+    target, target_faces = retriangulate(truth, faces, rng)
+    return truth, target, target_faces

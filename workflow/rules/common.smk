@@ -1,7 +1,7 @@
 # Configuration validation (before any rule runs) and the path helpers every stage uses.
 from pathlib import Path
 
-from spinecohort.config import ConfigError, cohort_files, validate_config
+from spinecohort.config import ConfigError, cohort_files, cohort_layout, validate_config
 from spinecohort.layout import Layout
 from spinecohort.store.zarr_store import n_models, n_shards
 
@@ -54,6 +54,7 @@ def final_outputs():
         L.template_deck,
         *L.figures,
         RELEASE_BAG,  # release.smk: the verified BagIt bag (its tag manifest is written last)
+        *([L.registration_report] if "inputs" in COHORT else []),  # register.smk
     ]
 
 

@@ -4,7 +4,7 @@
 from pathlib import Path
 
 from spinecohort.logs import to_file
-from spinecohort.store.shards import run_shard_job
+from spinecohort.virtual.shard_job import run_shard_job
 
 with to_file(snakemake.log[0]) as log:
     run_shard_job(

@@ -12,9 +12,10 @@ endplate_depth_upper       mm     antero-posterior depth of the superior endplat
 endplate_depth_lower       mm     the same for the inferior endplate (EPDl)
 body_height_anterior       mm     superior to inferior rim at the anterior mid-line (VBHa)
 body_height_posterior      mm     superior to inferior rim at the posterior mid-line (VBHp)
-pedicle_width[_left/right] mm     width of the pedicle's narrowest section, transverse direction (PDW)
-pedicle_height[...]        mm     height of that section, cranio-caudal direction (PDH)
-canal_width                mm     gap between the medial faces of the two pedicles (SCW)
+pedicle_width[_left/right] mm     width of the pedicle at its isthmus, across the pedicle in the transverse
+                                  plane: the shortest chord from the medial to the lateral wall (PDW)
+pedicle_height[...]        mm     the pedicle's shortest cranio-caudal chord (PDH)
+canal_width                mm     largest transverse distance between the medial walls of the pedicles (SCW)
 canal_depth                mm     posterior body wall to the inner face of the lamina, mid-line (SCD)
 spinous_length             mm     inner face of the lamina at the mid-line to the spinous tip (SPL)
 facet_<sup|inf>_transverse deg    angle between the facet plane's trace in the transverse plane and the
@@ -28,6 +29,8 @@ that pool sides.  The facet angles follow the plane-angle idea of Panjabi 1993 b
 table above (folded into 0..90 deg); Panjabi's own angle origins are not reproduced, so facet orientation is
 compared with ranges stated in these conventions (Masharawi 2004: facet to the mid-sagittal plane).
 
+Pedicles and canal are measured by chords of the closed bone surface (`spinecohort.anatomy.isthmus`), so a
+labeled pedicle region that covers only part of the pedicle does not change them.
 Everything is measured in the vertebra's own frame (`vertebra_frame`): superior = the mean normal of the two
 endplate planes, anterior = body centre minus canal centre (or a hint for a body alone), right = anterior x
 superior.  The part labels are the region names of ``spinecohort.anatomy.labels`` (``PARTS``).
@@ -42,6 +45,8 @@ from importlib import resources
 
 import numpy as np
 import pandas as pd
+
+from spinecohort.anatomy import isthmus
 
 #: Vertebra part labels (the anatomy labels' vertebral regions).
 PARTS: tuple[str, ...] = (
@@ -228,11 +233,13 @@ def body_dimensions(
     inferior_endplate,
     slab_mm: float = 2.0,
     strip_mm: float = 3.0,
+    max_widen: int = 4,
 ) -> dict[str, float]:
     """Endplate widths and depths and the anterior / posterior body heights (mm), Panjabi's EPW, EPD, VBH.
 
     ``local_mm``: all vertices in the vertebra frame (`VertebraFrame.local`).  The rim band of an endplate is
-    the body vertices within ``slab_mm`` of its outermost point (`_rim_band`); its width is the band's
+    the body vertices within ``slab_mm`` of its outermost point (`_rim_band`; the slab is widened in steps of
+    ``slab_mm`` when the band misses the mid-line strip); its width is the band's
     transverse extent, its depth the antero-posterior extent of the band within ``strip_mm`` of the mid-line.
     A height is the superior distance between the superior and the inferior rim corners at the anterior
     (posterior) mid-line: in each rim's mid-line strip the vertex extreme along the 45-deg diagonal between
@@ -245,15 +252,22 @@ def body_dimensions(
     sup = _indices(superior_endplate, n, "superior_endplate")
     inf = _indices(inferior_endplate, n, "inferior_endplate")
     s_axis = np.array([0.0, 0.0, 1.0])
-    bands = {"upper": _rim_band(q, body, sup, s_axis, slab_mm), "lower": _rim_band(q, body, inf, -s_axis, slab_mm)}
     mid = 0.5 * (q[body, 1].min() + q[body, 1].max())
     out: dict[str, float] = {}
     rims = {}
-    for name, band in bands.items():
-        b = q[band]
-        strip = b[np.abs(b[:, 1] - mid) <= strip_mm]
-        if len(strip) == 0:
-            raise ValueError(f"the {name} endplate rim has no vertex within {strip_mm} mm of the mid-sagittal plane")
+    for name, ep, outward in (("upper", sup, s_axis), ("lower", inf, -s_axis)):
+        # a saddle-shaped rim (its mid-line lower than its lateral corners) leaves the mid-line out of a thin
+        # slab: widen the slab in steps of slab_mm, at most max_widen times, until the mid-line strip is reached
+        for k in range(1, max_widen + 1):
+            b = q[_rim_band(q, body, ep, outward, k * slab_mm)]
+            strip = b[np.abs(b[:, 1] - mid) <= strip_mm]
+            if len(strip):
+                break
+        else:
+            raise ValueError(
+                f"the {name} endplate rim has no vertex within {strip_mm} mm of the mid-sagittal plane "
+                f"within {max_widen * slab_mm} mm of its outermost point"
+            )
         out[f"endplate_width_{name}"] = float(np.ptp(b[:, 1]))
         out[f"endplate_depth_{name}"] = float(np.ptp(strip[:, 0]))
         rims[name] = strip
@@ -264,79 +278,54 @@ def body_dimensions(
     return out
 
 
-def section_extents(
-    local_mm: np.ndarray, faces: np.ndarray, axis: np.ndarray, offset_mm: float, width_dir: np.ndarray
-) -> tuple[float, float]:
-    """Extents (mm) along ``width_dir`` and along ``axis x width_dir`` of the section of a triangle mesh by the
-    plane ``x . axis = offset_mm`` (points where triangle edges cross it); (nan, nan) if it misses."""
-    tri = local_mm[faces]  # (F, 3, 3)
-    d = tri @ axis - offset_mm  # (F, 3)
-    pts = []
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        di, dj = d[:, i], d[:, j]
-        cross = (di * dj < 0) | ((di == 0) & (dj != 0))
-        t = di[cross] / (di[cross] - dj[cross])
-        pts.append(tri[cross, i] + t[:, None] * (tri[cross, j] - tri[cross, i]))
-    pts = np.concatenate(pts)
-    if len(pts) < 3:
-        return float("nan"), float("nan")
-    height_dir = np.cross(axis, width_dir)
-    return float(np.ptp(pts @ width_dir)), float(np.ptp(pts @ height_dir))
-
-
-def pedicle_section(
-    local_mm: np.ndarray, faces: np.ndarray, pedicle, n_planes: int = 13, span: float = 0.6
-) -> tuple[float, float]:
-    """(width, height) in mm of a pedicle's narrowest section (its isthmus), Panjabi's PDW and PDH.
-
-    The pedicle axis is the principal axis of the pedicle vertices (oriented anteriorly), or the anterior axis
-    when that principal axis lies more than 45 deg from it (a stubby labeled pedicle); ``n_planes`` sections
-    perpendicular to it over the central ``span`` of the pedicle, built from the faces whose three vertices are
-    pedicle vertices.  Width is measured along the transverse axis made perpendicular to the pedicle axis,
-    height along the axis x width direction; the isthmus is the section of least width.
-    """
+def vertebra_triangles(local_mm: np.ndarray, faces: np.ndarray, parts: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(F, 3, 3) triangles (mm, frame coordinates) of the faces whose three vertices belong to the vertebra
+    (the union of ``parts``): the closed surface the chords of `spinecohort.anatomy.isthmus` cut."""
     q = np.asarray(local_mm, float)
-    idx = _indices(pedicle, len(q), "pedicle")
     mask = np.zeros(len(q), bool)
-    mask[idx] = True
+    for name, sel in parts.items():
+        mask[_indices(sel, len(q), name)] = True
     f = np.asarray(faces, np.int64)
     f = f[mask[f].all(axis=1)]
     if len(f) == 0:
-        raise ValueError("the pedicle vertex set contains no whole triangle")
-    pts = q[idx]
-    axis = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)[2][0]
-    axis = axis if axis[0] >= 0 else -axis
-    if axis[0] < np.cos(np.radians(45.0)):
-        axis = np.array([1.0, 0.0, 0.0])
-    width_dir = _unit(np.array([0.0, 1.0, 0.0]) - axis[1] * axis)
-    t = pts @ axis
-    lo, hi = t.min(), t.max()
-    offsets = lo + (hi - lo) * (0.5 + span * (np.linspace(0.0, 1.0, n_planes) - 0.5))
-    ext = np.array([section_extents(q, f, axis, o, width_dir) for o in offsets])
-    if np.all(np.isnan(ext[:, 0])):
-        raise ValueError("no section of the pedicle could be cut")
-    k = int(np.nanargmin(ext[:, 0]))
-    return float(ext[k, 0]), float(ext[k, 1])
+        raise ValueError("the vertebra's vertices contain no whole triangle")
+    return q[f]
 
 
-def canal_dimensions(
-    local_mm: np.ndarray, parts: Mapping[str, np.ndarray], strip_mm: float = 3.0, slab_mm: float = 3.0
-) -> tuple[float, float]:
-    """(canal_width, canal_depth) in mm, Panjabi's SCW and SCD: the gap between the medial faces of the two
-    pedicles, and the mid-line distance from the posterior body wall (mid-height) to the inner face of the
-    lamina."""
+def arch_dimensions(
+    local_mm: np.ndarray, faces: np.ndarray, parts: Mapping[str, np.ndarray], zone: float = 0.67
+) -> dict[str, float]:
+    """Pedicle isthmus width and height per side (Panjabi's PDW, PDH), canal width and depth (SCW, SCD), mm,
+    from chords of the vertebra's closed surface (`spinecohort.anatomy.isthmus`), in the vertebra frame.
+
+    The pedicle labels give only the first guess of the pedicles' mid-height (the mean superior coordinate of
+    their vertices); the measured places come from the bone surface.  The pedicles are searched in the anterior
+    ``zone`` of the canal depth (behind it the articular pillar, not the pedicle, bounds the canal).  Canal
+    depth: the mid-sagittal gap between the posterior body wall and the lamina's inner face at the pedicles'
+    mid-height (or the nearest height where the mid-line meets a lamina, `isthmus.canal_midline`); canal
+    width: the largest transverse distance between the two pedicles' medial walls over the coronal positions
+    where both bound the canal (the canal's transverse diameter between the pedicles, as CT measures it)."""
     q = np.asarray(local_mm, float)
+    tri = vertebra_triangles(q, faces, parts)
     n = len(q)
-    left = q[_indices(parts["pedicle_left"], n, "pedicle_left")]
-    right = q[_indices(parts["pedicle_right"], n, "pedicle_right")]
-    width = float(right[:, 1].min() - left[:, 1].max())
-    body = q[_indices(parts["body"], n, "body")]
-    mid_s = 0.5 * (body[:, 2].min() + body[:, 2].max())
-    wall = body[(np.abs(body[:, 1]) <= strip_mm) & (np.abs(body[:, 2] - mid_s) <= slab_mm)]
-    inner = _lamina_inner_point(q, parts, strip_mm)
-    if len(wall) == 0:
-        raise ValueError(f"no body vertex within {strip_mm} mm of the mid-line at mid-height")
-    return width, float(wall[:, 0].min() - inner[0])
+    ped = np.concatenate([_indices(parts[k], n, k) for k in ("pedicle_left", "pedicle_right")])
+    z0 = float(q[ped, 2].mean())
+    a_wall, a_lam, _ = isthmus.canal_midline(tri, np.array([0.0, 0.0, z0]))
+    a_back = a_wall - zone * (a_wall - a_lam)
+    out: dict[str, float] = {}
+    walls = []
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        ist = isthmus.pedicle_isthmus(tri, sign, z0, a_wall, a_back)
+        out[f"pedicle_width_{side}"], out[f"pedicle_height_{side}"] = ist.width, ist.height
+        walls.append(ist.medial_wall_mm)
+    for k in ("pedicle_width", "pedicle_height"):
+        out[k] = 0.5 * (out[f"{k}_left"] + out[f"{k}_right"])
+    both = walls[0] + walls[1]
+    if not np.isfinite(both).any():
+        raise ValueError("no coronal position where transverse lines from the canal meet both pedicles")
+    out["canal_width"] = float(np.nanmax(both))
+    out["canal_depth"] = a_wall - a_lam
+    return out
 
 
 def _lamina_inner_point(
@@ -395,12 +384,7 @@ def measure_vertebra(
     q = frame.local(p)
     out = body_dimensions(q, parts["body"], superior_endplate, inferior_endplate)
     if posterior:
-        for side in ("left", "right"):
-            w, h = pedicle_section(q, faces, parts[f"pedicle_{side}"])
-            out[f"pedicle_width_{side}"], out[f"pedicle_height_{side}"] = w, h
-        for k in ("pedicle_width", "pedicle_height"):
-            out[k] = 0.5 * (out[f"{k}_left"] + out[f"{k}_right"])
-        out["canal_width"], out["canal_depth"] = canal_dimensions(q, parts)
+        out.update(arch_dimensions(q, faces, parts))
     if "spinous" in parts and ("lamina" in parts):
         out["spinous_length"] = spinous_length(q, parts)
     surfaces = dict(facet_surfaces or {})

@@ -188,7 +188,7 @@ def measure_columns(
     ldi_min_ll_deg: LDI is NaN (``LDI_undefined``) where LL <= this.  ldi_undefined_points: LDI points there.
     cobb_secondary_min_deg: smallest secondary coronal curve reported in ``Cobb2``.
     Returns the columns (B,) arrays in table order, column units in :data:`UNITS` (:func:`measure`: as a
-    DataFrame); the shard jobs keep them as arrays and never import pandas.
+    DataFrame).
     """
     pts = np.asarray(points)
     if pts.dtype.kind not in "fiu":

@@ -58,17 +58,13 @@ def _entry(name: str, size: int, compress: int) -> zipfile.ZipInfo:
 
 
 def write_zip(path: str | Path, root: str | Path, members, *, compress: int = zipfile.ZIP_STORED) -> Path:
-    """Zip ``root/member`` files as ``member`` (sorted order given), reproducibly: same files -> same bytes.
-    Store files are read with ``O_DIRECT`` (around the page cache: each is read once)."""
-    from spinecohort.store.zarr_store import DirectReader
-
+    """Zip ``root/member`` files as ``member`` (sorted order given), reproducibly: same files -> same bytes."""
     root, path = Path(root), Path(path)
     with zipfile.ZipFile(path, "w", compression=compress, allowZip64=True) as zf:
         for rel in members:
             src = root / safe_relpath(rel, f"zip member of {path}")
             size = src.stat().st_size
-            fin = DirectReader(src) if compress == zipfile.ZIP_STORED else open(src, "rb")
-            with fin, zf.open(_entry(rel, size, compress), "w") as fout:
+            with open(src, "rb") as fin, zf.open(_entry(rel, size, compress), "w") as fout:
                 shutil.copyfileobj(fin, fout, _BLOCK)
     return path
 

@@ -8,7 +8,6 @@ Equation 1-3 without forming the 3N x 3N covariance.  Shapes are sampled with th
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,38 +62,15 @@ class SSM:
 
     @classmethod
     def load(cls, path: str | Path, n_modes: int | None = None) -> SSM:
-        """The SSM saved by :meth:`save`; with ``n_modes``, only its first n_modes modes and their eigenvalues
-        (read from the file's prefix: a shard job needs 5 of the default 41 modes, 10 of 81 MB), so the ratios
-        of explained variance are then those of the kept modes."""
+        """The SSM saved by :meth:`save`; with ``n_modes``, only its first n_modes modes and their eigenvalues,
+        so the ratios of explained variance are then those of the kept modes."""
         with np.load(path) as z:
-            mean, eigenvalues, n_train = z["mean"], z["eigenvalues"], int(z["n_train"])
-            if n_modes is None:
-                return cls(mean, z["modes"], eigenvalues, n_train)
+            mean, modes, eigenvalues, n_train = z["mean"], z["modes"], z["eigenvalues"], int(z["n_train"])
+        if n_modes is None:
+            return cls(mean, modes, eigenvalues, n_train)
         if not 1 <= n_modes <= len(eigenvalues):
             raise ValueError(f"{path}: asked for {n_modes} modes, the SSM has {len(eigenvalues)}")
-        return cls(mean, npz_leading_rows(path, "modes", n_modes), eigenvalues[:n_modes], n_train)
-
-
-def npz_leading_rows(path: str | Path, key: str, n_rows: int) -> np.ndarray:
-    """``np.load(path)[key][:n_rows]`` reading only those rows: a C-ordered array's leading rows are a prefix
-    of its .npy member (stored or deflated alike: the member is read as a stream).  Any other array (Fortran
-    order, no rows, objects) is loaded whole and sliced."""
-    with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fh:
-        version = np.lib.format.read_magic(fh)
-        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran_order, dtype = read_header(fh)
-        if fortran_order or not shape or dtype.hasobject:
-            with np.load(path) as z:
-                return np.array(z[key][:n_rows])
-        out = np.empty((min(n_rows, shape[0]), *shape[1:]), dtype=dtype)
-        view = memoryview(out.reshape(-1).view(np.uint8))
-        got = 0
-        while got < len(view):  # a deflated member hands out at most its buffer per read
-            n = fh.readinto(view[got:])
-            if not n:
-                raise ValueError(f"{path}: {key} ends after {got} of {len(view)} bytes")
-            got += n
-        return out
+        return cls(mean, np.array(modes[:n_modes]), eigenvalues[:n_modes], n_train)
 
 
 def build_ssm(aligned: np.ndarray, rel_tol: float = 1e-10) -> SSM:

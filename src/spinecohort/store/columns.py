@@ -1,15 +1,8 @@
-"""The shard jobs' tables as columns: an ordered ``dict`` of equal-length numpy arrays, written to CSV
-byte for byte as ``pandas.DataFrame(columns).to_csv(path, index=False, float_format=...)`` writes them.
-
-A shard job makes three small tables (2,401 rows); building them as DataFrames cost it ~0.5 s of CPU and
-importing pandas another 0.35 s, 7 % of the job (docs/store.md, session 21), so the job never imports
-pandas.  Readers of the tables (``measure.tables``, the platform) use pandas as before.
+"""The shard jobs' tables as columns: an ordered ``dict`` of equal-length numpy arrays, batch by batch, and
+the names of the columns the virtual-cohort sheet carries.  ``pandas.DataFrame(columns)`` is the table.
 """
 
 from __future__ import annotations
-
-import csv
-from pathlib import Path
 
 import numpy as np
 
@@ -39,33 +32,3 @@ def concat_columns(parts: list[Columns]) -> Columns:
         if list(p) != names:
             raise ValueError(f"part {i} has columns {list(p)[:5]}..., the first part {names[:5]}...")
     return {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in names}
-
-
-def _is_missing(v) -> bool:
-    return v is None or (isinstance(v, float) and v != v)
-
-
-def _texts(col: np.ndarray, float_format: str) -> list[str]:
-    """The CSV fields of one column as pandas writes them: floats by ``float_format`` (NaN empty), integers
-    and booleans by ``str``, other objects by ``str`` (None and NaN empty)."""
-    kind = col.dtype.kind
-    values = col.tolist()
-    if kind == "f":
-        return ["" if v != v else float_format % v for v in values]
-    if kind in "iub":
-        return [str(v) for v in values]
-    return ["" if _is_missing(v) else str(v) for v in values]
-
-
-def write_csv(columns: Columns, path: str | Path, float_format: str) -> None:
-    """``pandas.DataFrame(columns).to_csv(path, index=False, float_format=float_format)``, byte for byte
-    (tested): a header of the names, then one line per row, fields quoted only where they hold a comma, a
-    quote or a line break (the ``csv`` module, which pandas uses too), lines ending in \\n."""
-    arrays = [np.asarray(v) for v in columns.values()]
-    n = {len(a) for a in arrays}
-    if len(n) > 1:
-        raise ValueError(f"{path}: columns of different lengths {sorted(n)}")
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(columns)
-        w.writerows(zip(*(_texts(a, float_format) for a in arrays)))

@@ -22,7 +22,7 @@ from spinecohort.mesh.quality.kernels import (
     transpose_into_lanes_nb,
 )
 
-if TYPE_CHECKING:  # tables only where asked for: the shard jobs never import pandas (store.columns)
+if TYPE_CHECKING:  # a DataFrame only where a caller asks for one: the kernels return columns
     import pandas as pd
 
 

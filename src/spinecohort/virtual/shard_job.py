@@ -1,5 +1,9 @@
 """Per-shard logic of the virtual-cohort stage: sample, check and repair, measure, store (one shard = one job).
 
+It sits above ``spinecohort.store`` (which imports nothing else of spinecohort) and calls down into ``ssm``,
+``mesh``, ``measure`` and ``store``: the measurement runs on the float64 coordinates before the store
+rounds them, so it belongs to the job, not to the store.
+
 A shard is a contiguous model-ID range (``store.shard_range``).  ``process_shard`` makes one pass over it
 in batches of whole store chunks: it samples the hexahedral SSM's volume nodes and the triangulated SSM's
 landmark rows (float64 formula plus the disc-contact distraction), checks every hex of every model and
@@ -28,6 +32,8 @@ import warnings
 
 import numba
 import numpy as np
+import pandas as pd
+import zarr
 
 from spinecohort.cohort.landmarks import DISCS, LEVELS, Landmarks
 from spinecohort.measure.spinopelvic import measure_columns
@@ -37,8 +43,10 @@ from spinecohort.mesh.quality.table3 import model_quality, part_codes
 from spinecohort.mesh.repair import RepairError, prepare_untangle, untangle
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.ssm.model import SSM
-from spinecohort.store.columns import QUALITY_SUMMARY, Columns, concat_columns, write_csv
-from spinecohort.store.zarr_store import LinearPoints, linear_fields, model_name
+from spinecohort.store.chunks import LinearPoints, linear_fields
+from spinecohort.store.columns import QUALITY_SUMMARY, Columns, concat_columns
+from spinecohort.store.grid import model_name, shard_range, weights_of
+from spinecohort.store.writer import ShardWriter
 
 #: models per batch: 8 store chunks of 7 models, and a whole number of the quality kernel's vector lanes
 #: (``quality.LANES``), so no lane is padding
@@ -261,7 +269,7 @@ def process_shard(
 ) -> tuple[Columns, Columns, Columns, dict]:
     """One pass over a shard, batch by batch, nothing decoded again: sample (float64 SSM formula + disc
     contact) -> check every hex and its Table 3 rows, repair inverted models -> spinopelvic parameters of the
-    tri and the hex model -> ``writer.add`` (a :class:`~spinecohort.store.zarr_store.ShardWriter`; None: no
+    tri and the hex model -> ``writer.add`` (a :class:`~spinecohort.store.writer.ShardWriter`; None: no
     store write).  The parameters come from the float64 coordinates, i.e. from what the store holds before
     its 2^-10 mm rounding.
 
@@ -282,7 +290,7 @@ def process_shard(
         )
     # the hex volume and the tri landmark rows in float64 (the mean as a last mode of weight 1: one BLAS pass
     # writes mean + DF . b, the product's last FMA adding the mean); the whole tri models only as the store
-    # holds them, chunk by chunk in the writer (LinearPoints: never a float64 tri batch, docs/store.md).
+    # holds them, chunk by chunk in the writer (LinearPoints: never a float64 tri batch, docs/explanation/performance.md).
     # The hex model is measured on its landmark rows: the volume ones from the hex volume, the surface ones
     # (femoral heads, symphysis) from their tri vertices
     hex_rows, hex_lm_rows = hex_lm.measured()
@@ -431,10 +439,6 @@ def measure_shard(
 
 def shard_models_of(path, shard: int) -> tuple[np.ndarray, np.ndarray]:
     """(model IDs (S,), weights (S, m) in SD) of ``shard`` from the store's own metadata (not the config)."""
-    import zarr
-
-    from spinecohort.store.zarr_store import shard_range, weights_of
-
     attrs = dict(zarr.open_group(str(path), mode="r").attrs)
     start, stop = shard_range(int(shard), attrs["shard_models"], attrs["n_models"])
     ids = np.arange(start, stop)
@@ -460,8 +464,6 @@ def run_shard_job(
     from pathlib import Path
 
     from numcodecs import blosc
-
-    from spinecohort.store.zarr_store import ShardWriter
 
     # the rule has threads: 1 (Snakemake sets OMP/OpenBLAS threads to it; blosc has its own pool)
     blosc.set_nthreads(1)
@@ -502,9 +504,8 @@ def run_shard_job(
         raise
     t1, c1 = time.perf_counter(), time.process_time()
     record = writer.close()
-    write_csv(quality, outputs["quality"], "%.6g")
-    write_csv(params, outputs["params"], "%.6f")
-    write_csv(diff, outputs["tri_vs_hex"], "%.6g")
+    for table, key, fmt in ((quality, "quality", "%.6g"), (params, "params", "%.6f"), (diff, "tri_vs_hex", "%.6g")):
+        pd.DataFrame(table).to_csv(outputs[key], index=False, float_format=fmt)
     wall = time.perf_counter() - t0
     record.update(
         timing,
@@ -514,7 +515,7 @@ def run_shard_job(
         close_cpu_s=time.process_time() - c1,  # index, renames, weights, sidecar and the three CSV files
         encode_cpu_s=writer.encode_cpu_s,
         stored_bytes=writer.stored_bytes,
-        # per node of the models held (tri + whole hex model), as format 3 counted: comparable across formats
+        # per node of the models held (tri + whole hex model, its surface nodes counted though stored once)
         stored_nodes=len(ids) * (writer.n_nodes["tri/points"] + writer.n_hex_nodes),
         wall_s=wall,
         models_per_s=len(ids) / wall,
