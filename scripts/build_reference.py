@@ -205,15 +205,17 @@ def femoral_head(args, side: str, centre: np.ndarray, radius: float, log) -> tup
 
 
 #: the largest rigid opening (mm) of a joint before the push-out is tried
-MAX_RIGID_MM = 6.0
+MAX_RIGID_MM = 8.0
 
 
-def separate_pair(parts: dict, followers: dict, column: list, upper: str, lower: str, gap_mm: float) -> dict:
+def separate_pair(
+    parts: dict, followers: dict, column: list, upper: str, lower: str, gap_mm: float, max_push: int | None = None
+) -> dict:
     """Separate two neighbouring vertebrae.  At growing rigid openings (the upper bone and all above it,
     ``column``, translated along the line between the two centroids in ``gap_mm`` steps, with the meshes in
     ``followers[level]``: label carriers, body and facet patches), push the articular surface of one bone out
     of the other (:func:`contacts.push_out`); the first opening at which the bones do not cross, or at which
-    the push-out leaves no crossing and folds no triangle, is kept."""
+    the push-out leaves no crossing, folds no triangle and moves at most ``max_push`` vertices, is kept."""
     crossings = intersections_between(*parts[upper], *parts[lower])
     axis = parts[upper][0].mean(0) - parts[lower][0].mean(0)
     axis /= np.linalg.norm(axis)
@@ -224,8 +226,8 @@ def separate_pair(parts: dict, followers: dict, column: list, upper: str, lower:
             return {"crossings": crossings, "moved": f"{column[0]}-{upper}", "shift_mm": shift, "left": 0}
         for mover, fixed in ((upper, lower), (lower, upper)):
             va, left = push_out(parts[mover], parts[fixed], gap_mm)
-            if left == 0 and self_intersections(va, parts[mover][1]) == 0:
-                n = int(np.sum(np.any(va != parts[mover][0], axis=1)))
+            n = int(np.sum(np.any(va != parts[mover][0], axis=1)))
+            if left == 0 and (max_push is None or n <= max_push) and self_intersections(va, parts[mover][1]) == 0:
                 parts[mover] = (va, parts[mover][1])
                 return {"crossings": crossings, "moved": mover, "vertices": n, "shift_mm": shift, "left": 0}
         if shift >= MAX_RIGID_MM:
@@ -255,7 +257,12 @@ def separate_bones(args, parts: dict, carriers: dict, bodies: dict, facets: dict
         followers[lv] = [bodies[lv][0]] + [facets[f"{lv}_{s}"][0] for s in ("left", "right") if f"{lv}_{s}" in facets]
     moved = {}
     for k, (upper, lower) in enumerate(zip(names, names[1:])):
-        moved[f"{upper}-{lower}"] = separate_pair(parts, followers, names[: k + 1], upper, lower, args.joint_gap_mm)
+        # a warped thoracic level is only touched up by the push-out (its arch would lose its shape): the
+        # rest of the overlap is opened rigidly
+        cap = args.max_push_thoracic if upper.startswith("T") else None
+        moved[f"{upper}-{lower}"] = separate_pair(
+            parts, followers, names[: k + 1], upper, lower, args.joint_gap_mm, cap
+        )
     for other in ("S1", "femur_L", "femur_R"):
         # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur; at the
         # sacro-iliac joint the sacrum's auricular surface moves when the hip bone cannot be pushed out cleanly
@@ -301,6 +308,7 @@ def parse_args(argv=None):
     ap.add_argument("--joint-space-mm", type=float, default=2.5, help="acetabular radius - head radius")
     ap.add_argument("--femur-cut-mm", type=float, default=45.0)
     ap.add_argument("--min-disc-mm", type=float, default=3.0, help="closest body-to-body distance, thoracic")
+    ap.add_argument("--max-push-thoracic", type=int, default=40, help="most vertices a push moves at a T joint")
     ap.add_argument("--joint-gap-mm", type=float, default=0.5, help="clearance of pushed-apart joint surfaces")
     return ap.parse_args(argv)
 
