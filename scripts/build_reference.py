@@ -204,7 +204,42 @@ def femoral_head(args, side: str, centre: np.ndarray, radius: float, log) -> tup
     return v + centre, f, np.flatnonzero(head)
 
 
-def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -> None:
+#: the largest rigid opening (mm) of a joint before the push-out is tried
+MAX_RIGID_MM = 8.0
+
+
+def separate_pair(
+    parts: dict, followers: dict, column: list, upper: str, lower: str, gap_mm: float, max_push: int | None = None
+) -> dict:
+    """Separate two neighbouring vertebrae.  At growing rigid openings (the upper bone and all above it,
+    ``column``, translated along the line between the two centroids in ``gap_mm`` steps, with the meshes in
+    ``followers[level]``: label carriers, body and facet patches), push the articular surface of one bone out
+    of the other (:func:`contacts.push_out`); the first opening at which the bones do not cross, or at which
+    the push-out leaves no crossing, folds no triangle and moves at most ``max_push`` vertices, is kept."""
+    crossings = intersections_between(*parts[upper], *parts[lower])
+    axis = parts[upper][0].mean(0) - parts[lower][0].mean(0)
+    axis /= np.linalg.norm(axis)
+    shift = 0.0
+    while True:
+        left = intersections_between(*parts[upper], *parts[lower])
+        if left == 0 and cKDTree(parts[lower][0]).query(parts[upper][0])[0].min() >= gap_mm:
+            return {"crossings": crossings, "moved": f"{column[0]}-{upper}", "shift_mm": shift, "left": 0}
+        for mover, fixed in ((upper, lower), (lower, upper)):
+            va, left = push_out(parts[mover], parts[fixed], gap_mm)
+            n = int(np.sum(np.any(va != parts[mover][0], axis=1)))
+            if left == 0 and (max_push is None or n <= max_push) and self_intersections(va, parts[mover][1]) == 0:
+                parts[mover] = (va, parts[mover][1])
+                return {"crossings": crossings, "moved": mover, "vertices": n, "shift_mm": shift, "left": 0}
+        if shift >= MAX_RIGID_MM:
+            raise RuntimeError(f"{upper}-{lower}: still {left} crossings after a {shift} mm opening")
+        shift += gap_mm
+        for lv in column:
+            parts[lv] = (parts[lv][0] + gap_mm * axis, parts[lv][1])
+            for mesh in followers.get(lv, []):
+                mesh += gap_mm * axis
+
+
+def separate_bones(args, parts: dict, carriers: dict, bodies: dict, facets: dict, log: dict) -> None:
     """Open the thoracic disc spaces, then push every overlapping articular surface out of its partner
     (:mod:`spinecohort.anatomy.contacts`); parts and carriers are updated in place."""
     l1_body = inside_or_near(parts["L1"][0], *bodies["L1"], BODY_TOLERANCE_MM)
@@ -217,29 +252,33 @@ def separate_bones(args, parts: dict, carriers: dict, bodies: dict, log: dict) -
         carriers.get(lv, p)[:] += p[0] - b  # the same translation for the label carrier
         parts[lv] = (p, parts[lv][1])
     names = column + ["L2", "L3", "L4", "L5", "S1"]
+    followers = {lv: [carriers[lv]] for lv in carriers}
+    for lv in names[12:]:
+        followers[lv] = [bodies[lv][0]] + [facets[f"{lv}_{s}"][0] for s in ("left", "right") if f"{lv}_{s}" in facets]
     moved = {}
-    for upper, lower in zip(names, names[1:]):
-        va, left = push_out(parts[upper], parts[lower], args.joint_gap_mm)
-        key = upper
-        if left:  # a thin process of the lower bone through the upper one: move the lower one instead
-            vb, left_b = push_out(parts[lower], parts[upper], args.joint_gap_mm)
-            if left_b < left:
-                va, left, key = vb, left_b, lower
-        moved[f"{upper}-{lower}"] = {
-            "moved": key,
-            "vertices": int(np.sum(np.any(va != parts[key][0], axis=1))),
-            "left": left,
-        }
-        parts[key] = (va, parts[key][1])
+    for k, (upper, lower) in enumerate(zip(names, names[1:])):
+        # a warped thoracic level is only touched up by the push-out (its arch would lose its shape): the
+        # rest of the overlap is opened rigidly
+        cap = args.max_push_thoracic if upper.startswith("T") else None
+        moved[f"{upper}-{lower}"] = separate_pair(
+            parts, followers, names[: k + 1], upper, lower, args.joint_gap_mm, cap
+        )
     for other in ("S1", "femur_L", "femur_R"):
-        # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur
-        va, left = push_out(parts["pelvis"], parts[other], args.joint_gap_mm)
+        # the femoral-head cap stays an exact sphere: only the hip bone moves against a femur; at the
+        # sacro-iliac joint the sacrum's auricular surface moves when the hip bone cannot be pushed out cleanly
+        candidates = [("pelvis", other)] + ([(other, "pelvis")] if other == "S1" else [])
+        for mover, fixed in candidates:
+            va, left = push_out(parts[mover], parts[fixed], args.joint_gap_mm, max_rounds=12)
+            folds = self_intersections(va, parts[mover][1])
+            if left == 0 and folds == 0:
+                break
         moved[f"pelvis-{other}"] = {
-            "moved": "pelvis",
-            "vertices": int(np.sum(np.any(va != parts["pelvis"][0], axis=1))),
+            "moved": mover,
+            "vertices": int(np.sum(np.any(va != parts[mover][0], axis=1))),
             "left": left,
+            "self_intersections": folds,
         }
-        parts["pelvis"] = (va, parts["pelvis"][1])
+        parts[mover] = (va, parts[mover][1])
     log["separation"] = moved
     for k, c in moved.items():
         print(f"separate {k:16s}", json.dumps(c), flush=True)
@@ -269,6 +308,7 @@ def parse_args(argv=None):
     ap.add_argument("--joint-space-mm", type=float, default=2.5, help="acetabular radius - head radius")
     ap.add_argument("--femur-cut-mm", type=float, default=45.0)
     ap.add_argument("--min-disc-mm", type=float, default=3.0, help="closest body-to-body distance, thoracic")
+    ap.add_argument("--max-push-thoracic", type=int, default=40, help="most vertices a push moves at a T joint")
     ap.add_argument("--joint-gap-mm", type=float, default=0.5, help="clearance of pushed-apart joint surfaces")
     return ap.parse_args(argv)
 
@@ -304,7 +344,7 @@ def main(argv=None) -> int:
         hv, hf, cap = femoral_head(args, side, c, r - args.joint_space_mm, log)
         parts[f"femur_{side}"] = (hv, hf)
         heads[side] = cap
-    separate_bones(args, parts, carriers, bodies, log)
+    separate_bones(args, parts, carriers, bodies, facets, log)
     log["checks"] = {k: check_surface(*vf) for k, vf in parts.items()}
     for k, c in log["checks"].items():
         print(f"{k:9s}", json.dumps(c), flush=True)

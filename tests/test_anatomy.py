@@ -156,10 +156,13 @@ def test_reference_measures_as_an_upright_adult_spine(ref):
         assert 6.0 < t[f"DH_{disc}"] < 15.0  # lumbar central disc heights (Zhang 2018: 7-15 mm)
 
 
-def test_reference_lumbar_joints_and_hips_do_not_cross(ref):
+def test_reference_bones_do_not_cross(ref):
     c = contacts.adjacent_contacts(ref.vertices, ref.faces, ref.level, ref.region)
-    # the build pushed every lumbar facet joint and both hips apart (clearance 0.5 mm); the thoracic pairs
-    # T1-T2, T6-T7, T10-T11 and the sacro-iliac joint keep crossings (build log, docs/explanation/anatomy.md)
-    for pair in ("T12-L1", "L1-L2", "L2-L3", "L3-L4", "L4-L5", "L5-S1", "femur_L-pelvis", "femur_R-pelvis"):
-        assert c[pair]["crossings"] == 0, pair
-    assert c["T7-T8"]["min_gap_mm"] > 1.0
+    # the build separated every joint (push-out to a 0.5 mm clearance, rigid opening where the push-out could
+    # not): no neighbouring pair crosses; the closest vertex gap is 0.37 mm (T2-T3, not crossing, left as built)
+    for pair, val in c.items():
+        assert val["crossings"] == 0, pair
+        assert val["min_gap_mm"] > 0.3, (pair, val)
+    # nor does any triangle of the whole reference cross another (each bone closed and unfolded, no overlap)
+    assert self_intersections(ref.vertices, ref.faces) == 0
+    assert all(ch["self_intersections"] == 0 for ch in ref.build["checks"].values())

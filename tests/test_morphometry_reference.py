@@ -19,7 +19,7 @@ EXCEPTIONS = {
     # facets of the Visible Human are more sagittal than Masharawi 2004's ranges (the upstream patches too)
     *((lv, "facet_sup_transverse", "Masharawi") for lv in LEVELS if lv != "T8"),
     # the canal of the whole-vertebra surfaces is narrow (below Panjabi's mean at every level)
-    *((lv, "canal_depth", "Panjabi") for lv in ("T11", "T12", "L1", "L2", "L3", "L5")),
+    *((lv, "canal_depth", "Panjabi") for lv in ("T11", "T12", "L1", "L3", "L5")),
     ("L3", "canal_width", "Panjabi"),
     # T12 warped from L1 is much taller behind than in front; L1/L2 posterior heights of this donor exceed
     # Panjabi 1992's cadavers but are inside Busscher 2010's CT series
@@ -70,8 +70,8 @@ def test_values_are_inside_the_published_intervals_but_the_named_exceptions(tabl
     # every lumbar pedicle width is inside both Panjabi 1992 and Zindrick 1987
     ped = table[(table["quantity"] == "pedicle_width") & table["level"].str.startswith("L")]
     assert len(ped) == 10 and (ped["verdict"] == "inside").all()
-    # 69 published cells: 39 inside, 28 named exceptions, 2 means without dispersion (T11, T12 EPWu)
-    assert table["verdict"].value_counts().to_dict() == {"inside": 39, "outside": 28, "no interval": 2}
+    # 69 published cells: 40 inside, 27 named exceptions, 2 means without dispersion (T11, T12 EPWu)
+    assert table["verdict"].value_counts().to_dict() == {"inside": 40, "outside": 27, "no interval": 2}
 
 
 def test_the_docs_hold_the_generated_table(table):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from spinecohort.cohort.alignment import CRITERIA
 from spinecohort.cohort.real import generate_real_cohort, reference_frames
@@ -41,3 +42,61 @@ def test_reference_discs_are_open():
     fr = reference_frames(load_reference())
     assert (fr.disc_height > 3.0).all()  # every central disc height of the reference, mm
     assert (fr.body_height > 10.0).all()
+
+
+def test_patient_bones_do_not_cross_and_discs_stay_open(cohort):
+    from spinecohort.anatomy.contacts import cohort_contacts
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.anatomy.surface import self_intersections
+    from spinecohort.cohort.real import MIN_BODY_GAP_MM, first_use_reference
+
+    ref = first_use_reference(load_reference())
+    c = cohort_contacts(cohort.vertices, cohort.faces, ref.level, ref.region)
+    # every joint is opened until its bones do not cross (VTK collision test, triangle against triangle), and
+    # the pelvis turns the sacro-iliac joint as one piece: no neighbouring pair crosses in any patient
+    assert (c["max_crossings"] == 0).all(), c
+    assert (c["min_gap_mm"] > 0.0).all(), c
+    # nor does any triangle cross another of the whole model (bones with themselves and with any other bone)
+    assert self_intersections(cohort.vertices[0], cohort.faces) == 0
+    body = ref.region == 0
+    for k, v in enumerate(cohort.vertices):
+        for i in range(16):  # closest body-to-body distance across every disc T1-T2 .. L4-L5, mm
+            a, b = v[body & (ref.level == i)], v[body & (ref.level == i + 1)]
+            assert cKDTree(a).query(b)[0].min() >= MIN_BODY_GAP_MM - 1e-9, (k, i)
+
+
+def test_pelvic_incidence_follows_the_pelvis_shape():
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import PI_RANGE_DEG, _pelvic_frame, first_use_reference, turn_for_pi
+
+    fr = reference_frames(first_use_reference(load_reference()))
+    pis = np.array([40.0, 58.0, 70.0])
+    # the inverted turn gives back the PI asked for (interpolated on a 0.5 deg grid of turns: within 0.1 deg)
+    got = [_pelvic_frame(fr, t)[-1] for t in turn_for_pi(fr, pis)]
+    assert np.abs(np.array(got) - pis).max() < 0.1
+    assert PI_RANGE_DEG[0] <= 40.0 and PI_RANGE_DEG[1] >= 70.0
+
+
+def test_rigid_column_reaches_the_drawn_lordosis_and_kyphosis():
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import (
+        aim,
+        draw_real_patient,
+        first_use_reference,
+        joint_pivots,
+        pose_column,
+        pose_truth,
+    )
+
+    ref = first_use_reference(load_reference())
+    fr, pivots = reference_frames(ref), joint_pivots(ref)
+    s1 = ref.vertices[ref.landmarks.rim_sup["S1"]]
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        p, turn = draw_real_patient(rng, "x", fr)
+        pose, q = pose_column(aim(p, turn, fr, pivots, s1), turn, fr, pivots, np.zeros(17))
+        t = pose_truth(q, pose, fr, pose.sacrum(fr, s1))
+        # the reference's body wedges shift the span ends; the aimed chain compensates them (aim's docstring)
+        assert abs(t["LL"] - p.LL) < 0.1 and abs(t["TK_T4T12"] - p.TK_T4T12) < 0.1
+        assert abs(t["TK_T1T12"] - t["TK_T4T12"] - p.TK_T1T4) < 0.1
+        assert abs(t["PI"] - p.PI) < 1e-9 and abs(t["PT"] - p.PT) < 1e-9

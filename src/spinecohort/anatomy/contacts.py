@@ -75,26 +75,80 @@ def push_out(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
     return va, left
 
 
-def adjacent_contacts(vertices: np.ndarray, faces: np.ndarray, level: np.ndarray, region: np.ndarray) -> dict:
-    """Crossing triangle pairs and closest vertex gap (mm) of every pair of neighbouring bones of one model in
-    the reference topology: T1-T2 ... L5-S1 (the sacrum: regions sacrum and S1 plate), S1-pelvis and each
-    femur against the hip bones.  ``level``/``region``: the reference's per-vertex labels."""
+def bone_pairs(level: np.ndarray, region: np.ndarray, x: np.ndarray, faces: np.ndarray) -> list[tuple]:
+    """The neighbouring bones of a model in the reference topology: T1-T2 ... L5-S1 (the sacrum: regions sacrum
+    and S1 plate), S1-pelvis and each femur against the hip bones.  ``level``/``region``: the reference's
+    per-vertex labels; ``x``: the reference's x coordinates (the femur side).  Returns (name, vertex indices
+    of a, faces of a, vertex indices of b, faces of b) per pair, the faces numbered into their bone's indices."""
     from spinecohort.anatomy.labels import region_id
-
-    sacrum = np.isin(region, [region_id("sacrum"), region_id("s1_plate")])
-    bones = [level == i for i in range(int(level.max()) + 1)] + [sacrum]
-    names = [f"level{i}" for i in range(int(level.max()) + 1)] + ["S1"]
     from spinecohort.cohort.landmarks import LEVELS
 
-    names[: len(LEVELS)] = LEVELS
+    sacrum = np.isin(region, [region_id("sacrum"), region_id("s1_plate")])
     hip = np.isin(region, [region_id("ilium"), region_id("pubis")])
     head = region == region_id("femoral_head")
-    pairs = [(names[k], bones[k], names[k + 1], bones[k + 1]) for k in range(len(bones) - 1)]
-    pairs += [("S1", sacrum, "pelvis", hip), ("femur_L", head & (vertices[:, 0] < 0), "pelvis", hip)]
-    pairs += [("femur_R", head & (vertices[:, 0] > 0), "pelvis", hip)]
-    out = {}
+    bones = [(lv, level == i) for i, lv in enumerate(LEVELS)] + [("S1", sacrum)]
+    pairs = [(*bones[k], *bones[k + 1]) for k in range(len(bones) - 1)]
+    pairs += [("S1", sacrum, "pelvis", hip), ("femur_L", head & (x < 0), "pelvis", hip)]
+    pairs += [("femur_R", head & (x > 0), "pelvis", hip)]
+    out = []
     for na, ma, nb, mb in pairs:
-        fa, fb = faces[np.all(ma[faces], axis=1)], faces[np.all(mb[faces], axis=1)]
-        gap = float(cKDTree(vertices[ma]).query(vertices[mb])[0].min())
-        out[f"{na}-{nb}"] = {"crossings": intersections_between(vertices, fa, vertices, fb), "min_gap_mm": gap}
+        out.append((f"{na}-{nb}", *_local(ma, faces), *_local(mb, faces)))
     return out
+
+
+def _local(mask: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex indices of a bone and its faces renumbered into them."""
+    idx = np.flatnonzero(mask)
+    new = np.full(len(mask), -1)
+    new[idx] = np.arange(len(idx))
+    return idx, new[faces[np.all(mask[faces], axis=1)]]
+
+
+def pair_contact(vertices: np.ndarray, pair: tuple) -> tuple[int, float]:
+    """Crossing triangle pairs (VTK OBB-tree collision test) and closest vertex-to-vertex gap (mm) of one pair
+    of :func:`bone_pairs`.
+
+    Only the triangles near the other bone are tested: two crossing triangles share a point within the longest
+    edge of a vertex of each, so a triangle none of whose vertices is within the sum of the two bones' longest
+    edges of the other bone cannot cross it."""
+    _, ia, fa, ib, fb = pair
+    va, vb = vertices[ia], vertices[ib]
+    margin = _longest_edge(va, fa) + _longest_edge(vb, fb)
+    da = cKDTree(vb).query(va, distance_upper_bound=margin)[0]
+    db = cKDTree(va).query(vb, distance_upper_bound=margin)[0]
+    near_a, near_b = fa[np.any(da[fa] < margin, axis=1)], fb[np.any(db[fb] < margin, axis=1)]
+    gap = float(min(da.min(), db.min()))
+    if len(near_a) == 0 or len(near_b) == 0:
+        return 0, gap if np.isfinite(gap) else float(cKDTree(va).query(vb)[0].min())
+    return intersections_between(va, near_a, vb, near_b), gap
+
+
+def _longest_edge(v: np.ndarray, f: np.ndarray) -> float:
+    return float(np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2).max())
+
+
+def adjacent_contacts(vertices: np.ndarray, faces: np.ndarray, level: np.ndarray, region: np.ndarray) -> dict:
+    """Crossing triangle pairs and closest vertex gap (mm) of every pair of neighbouring bones of one model in
+    the reference topology (:func:`bone_pairs`)."""
+    out = {}
+    for pair in bone_pairs(level, region, vertices[:, 0], faces):
+        n, gap = pair_contact(vertices, pair)
+        out[pair[0]] = {"crossings": n, "min_gap_mm": gap}
+    return out
+
+
+def cohort_contacts(vertices: np.ndarray, faces: np.ndarray, level: np.ndarray, region: np.ndarray):
+    """Per neighbouring-bone pair over a cohort (P, N, 3) in the reference topology: patients with crossing
+    triangles, the most crossing pairs in one patient and the closest vertex gap (mm) of any patient."""
+    import pandas as pd
+
+    pairs = bone_pairs(level, region, vertices[0, :, 0], faces)
+    res = np.array([[pair_contact(v, pair) for pair in pairs] for v in vertices])  # (P, pairs, 2)
+    return pd.DataFrame(
+        {
+            "patients_crossing": (res[:, :, 0] > 0).sum(0),
+            "max_crossings": res[:, :, 0].max(0).astype(int),
+            "min_gap_mm": res[:, :, 1].min(0),
+        },
+        index=[p[0] for p in pairs],
+    )

@@ -3,28 +3,23 @@
 Each patient is the reference (:mod:`spinecohort.anatomy.reference`; Visible Human Male lumbar spine,
 sacrum and hip bones, thoracic levels fitted to level-specific shapes) with
 
-* the alignment of :mod:`spinecohort.cohort.alignment`: every endplate of the reference is moved onto the
-  patient's endplate chain (centre and frame), so the sagittal and coronal tilts, the lordosis and kyphosis
-  and the wedging of every disc and body are the imposed ones;
-* shape variation: overall size (the patient's scale), central body and disc heights (the reference's, times
-  the patient's disc factor and a body-height factor), and the pelvis: the sacrum is turned about the
-  medio-lateral axis through the sacro-iliac joints by an angle drawn per patient, which changes the
-  pelvic incidence (PI varies because the pelvis differs, not by posture alone).
+* pelvic morphology: the pelvic incidence drawn as in an adult-spinal-deformity cohort
+  (:func:`alignment.draw_patient`, clipped to ``PI_RANGE_DEG``) is made by the shape of the pelvis: the
+  sacrum and the auricular part of each ilium turn together about the medio-lateral axis through the
+  sacro-iliac joints, fading out towards the acetabula (:func:`pelvis_turn_weights`), so the joints stay
+  congruent and the acetabula and femoral heads keep their spheres;
+* the alignment of :mod:`spinecohort.cohort.alignment`: every vertebra is a rigid body (times the patient's
+  overall scale) turned so that its mid-axis (the mean of its two endplate normals) takes the orientation of
+  the patient's chain, and hinged on the level below at the joint pivot (the mid-point of its inferior
+  articular surfaces), so the facet joints stay congruent while the disc in front opens or closes; the
+  vertebral shapes and body wedging are the reference's, the segmental angles are the discs';
+* open joints: from L5-S1 upwards a joint whose two bones cross or whose bodies come closer than
+  ``MIN_BODY_GAP_MM`` is opened along its disc axis in ``OPEN_STEP_MM`` steps (:func:`separate`).
 
-How a vertebra follows its two endplates: each endplate ``e`` gets the similarity
-``T_e(x) = C_e + s R_e (x - c_e)`` taking the reference endplate (centre ``c_e``, frame of its rim-band plane)
-to the patient's (``C_e``, frame of the chain); a vertex at relative height ``w`` between the reference
-inferior (0) and superior (1) endplate centres, clipped to [0, 1], moves to ``(1 - w) T_inf(x) + w T_sup(x)``.
-The endplate patches and rim bands have ``w`` exactly 0 or 1, so they move rigidly and the plane and centre
-the measurement fits are exactly the imposed ones.  The posterior arch near a facet joint (within
-``JOINT_RADIUS_MM`` of an articular surface) or hanging below the inferior endplate (fully at ``HANG_MM``)
-blends towards the map shared by both sides of the joint, and a disc that would bring two bodies closer than
-``MIN_BODY_GAP_MM`` is made higher (its imposed height, hence the truth, follows).  The pelvis, sacrum and femoral heads move as one
-similarity (after the sacral turn), so the head spheres stay spheres.
-
-Ground truth: the chain's imposed angles and positions (:func:`alignment.true_parameters`) with the pelvic
-incidence, pelvic radius, head radii and hip width taken from the transformed reference planes and spheres
-(no fit of the patient mesh).  Correspondence: every patient has the reference's vertices and faces.
+Ground truth: the reference endplate planes (rim-band centre and least-squares normal) and head spheres
+carried by the imposed similarities, and the pelvic incidence of the turned reference pelvis
+(:func:`pose_truth`, then :func:`alignment.true_parameters`; no fit of the patient mesh).  Correspondence:
+every patient has the reference's vertices and faces.
 """
 
 from __future__ import annotations
@@ -34,11 +29,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from spinecohort.anatomy.reference import Reference, load_reference
 from spinecohort.cohort.alignment import (
     CRITERIA,
+    N_POS,
+    Chain,
     PatientParameters,
     build_chain,
     draw_patient,
@@ -52,11 +50,6 @@ from spinecohort.cohort.alignment import (
 from spinecohort.cohort.landmarks import LEVELS
 
 log = logging.getLogger(__name__)
-
-#: SD (deg) and clip (deg) of the sacral turn that varies PI about the reference's
-SACRAL_TURN_SD_DEG, SACRAL_TURN_MAX_DEG = 6.0, 12.0
-#: SD of the per-level body-height factor
-BODY_HEIGHT_SD = 0.04
 
 
 @dataclass(frozen=True)
@@ -116,10 +109,6 @@ def reference_frames(ref: Reference) -> ReferenceFrames:
     )
 
 
-def _sag(v: np.ndarray) -> float:
-    return float(np.degrees(np.arctan2(v[1], v[2])))
-
-
 def _pelvic_frame(fr: ReferenceFrames, turn_deg: float):
     """S1 centre and normal after the sacral turn, the hip axis (mid-point), lateral axis, PI (deg)."""
     rot = Rotation.from_rotvec(np.radians(turn_deg) * np.array([1.0, 0.0, 0.0])).as_matrix()
@@ -157,11 +146,25 @@ def pelvis_similarity(fr: ReferenceFrames, turn_deg: float, pt_deg: float, scale
     return r, scale, t, rot_sac, pi, radius * scale
 
 
+#: pelvic incidence (deg) the pelvic morphology is drawn in: ``draw_patient``'s PI (mean 58, SD 9 deg, adult
+#: spinal deformity cohorts) clipped to the range the sacral turn reaches without folding the ilium
+PI_RANGE_DEG = (38.0, 72.0)
+#: sacral turns (deg) tabulated to invert PI(turn)
+TURN_GRID_DEG = np.linspace(-50.0, 25.0, 151)
+
+
+def turn_for_pi(fr: ReferenceFrames, pi_deg: np.ndarray) -> np.ndarray:
+    """The sacral turn (deg) that gives the pelvic incidence ``pi_deg`` (PI falls monotonically with the turn)."""
+    pis = np.array([_pelvic_frame(fr, t)[-1] for t in TURN_GRID_DEG])
+    return np.interp(pi_deg, pis[::-1], TURN_GRID_DEG[::-1])
+
+
 def draw_real_patient(rng: np.random.Generator, pid: str, fr: ReferenceFrames) -> tuple[PatientParameters, float]:
-    """A patient of the generic draw with the pelvic incidence of the turned reference pelvis: the drawn
-    PI - LL mismatch and PT are kept (PT within [12, PI - 12] deg); returns the sacral turn too."""
+    """A patient of the generic draw whose pelvic morphology gives the drawn PI: the sacral turn that makes the
+    reference pelvis's PI the drawn one (within ``PI_RANGE_DEG``); the drawn PI - LL mismatch and PT are kept
+    (PT within [12, PI - 12] deg).  Returns the patient (with the exact PI of its pelvis) and the turn."""
     p = draw_patient(rng, pid)
-    turn = float(np.clip(rng.normal(0.0, SACRAL_TURN_SD_DEG), -SACRAL_TURN_MAX_DEG, SACRAL_TURN_MAX_DEG))
+    turn = float(turn_for_pi(fr, np.clip(p.PI, *PI_RANGE_DEG)))
     pi = _pelvic_frame(fr, turn)[-1]
     mismatch = p.PI - p.LL
     pt = float(np.clip(p.PT, min(12.0, pi - 12.0), pi - 12.0))
@@ -169,136 +172,190 @@ def draw_real_patient(rng: np.random.Generator, pid: str, fr: ReferenceFrames) -
     return replace(p, PI=pi, PT=pt, LL=ll), turn
 
 
-def _vertebra_weights(ref: Reference, fr: ReferenceFrames) -> np.ndarray:
-    """(N,) relative height of every vertebra vertex between its inferior (0) and superior (1) endplate."""
-    w = np.zeros(len(ref.vertices))
-    for i, lv in enumerate(LEVELS):
-        idx = ref.vertebra(i)
-        c0, c1 = fr.centre[(lv, "inf")], fr.centre[(lv, "sup")]
-        axis = c1 - c0
-        w[idx] = np.clip((ref.vertices[idx] - c0) @ axis / (axis @ axis), 0.0, 1.0)
-        for key, val in (("sup", 1.0), ("inf", 0.0)):
-            w[ref.sets[f"endplate_full_{key}"][lv]] = val
-            w[getattr(ref.landmarks, f"endplate_{key}")[lv]] = val
+#: hip-bone vertices within this distance (mm) of a femoral-head surface keep the acetabulum's pose; those
+#: within SI_CONTACT_MM of the sacrum turn with it
+ACETABULUM_MARGIN_MM, SI_CONTACT_MM = 12.0, 3.0
+
+
+def pelvis_turn_weights(ref: Reference, fr: ReferenceFrames) -> np.ndarray:
+    """(N,) fraction of the sacral turn every pelvis vertex takes: 1 on the sacrum, 0 on the femurs and within
+    ``ACETABULUM_MARGIN_MM`` of a femoral head, and on the hip bones a smoothstep of the ratio of the distances
+    to the acetabulum and to the sacrum (1 at the sacro-iliac joint): the sacrum and the auricular part of the
+    ilium turn together (the joint stays congruent) while the acetabula and heads keep their spheres, so PI
+    changes by the shape of the pelvis."""
+    v = ref.vertices
+    sac = np.isin(ref.region, [11, 12])
+    hip = np.isin(ref.region, [13, 14])
+    w = np.zeros(len(v))
+    w[sac] = 1.0
+    d_si = np.clip(cKDTree(v[sac]).query(v[hip])[0] - SI_CONTACT_MM, 0.0, None)
+    d_ac = np.min([np.linalg.norm(v[hip] - fr.head_centre[k], axis=1) - fr.head_radius[k] for k in ("L", "R")], axis=0)
+    d_ac = np.clip(d_ac - ACETABULUM_MARGIN_MM, 0.0, None)
+    t = d_ac / np.maximum(d_ac + d_si, 1e-9)
+    w[hip] = t * t * (3.0 - 2.0 * t)
     return w
 
 
-def rot_sac_point(fr: ReferenceFrames, rot_sac: np.ndarray) -> np.ndarray:
-    """The reference S1 centre after the sacral turn."""
-    return fr.si_centre + rot_sac @ (fr.centre[("S1", "sup")] - fr.si_centre)
+def turn_pelvis(x: np.ndarray, w: np.ndarray, fr: ReferenceFrames, turn_deg: float) -> np.ndarray:
+    """Reference pelvis vertices (N, 3) mm turned by ``w * turn_deg`` about the medio-lateral axis through the
+    sacro-iliac joints (the sacral turn at w = 1)."""
+    a = np.radians(turn_deg) * w
+    c, s = np.cos(a), np.sin(a)
+    d = x - fr.si_centre
+    out = d.copy()
+    out[:, 1] = c * d[:, 1] - s * d[:, 2]
+    out[:, 2] = s * d[:, 1] + c * d[:, 2]
+    return out + fr.si_centre
 
 
-#: support radius (mm) of the facet-joint weight: posterior-element vertices within it of an articular
-#: surface follow the joint's shared transform
-JOINT_RADIUS_MM = 12.0
-HANG_MM = 8.0
+def joint_pivots(ref: Reference) -> np.ndarray:
+    """(17, 3) reference pivot (mm) of the joint below every level T1..L5: the mid-point of the centroids of
+    the left and right inferior articular surfaces.  A rotation about it keeps both facet joints nearly in
+    place (they lie on its medio-lateral line) and opens or closes the disc in front."""
+    return np.array(
+        [
+            0.5
+            * sum(ref.vertices[ref.sets[f"facet_surface_inf_{s}"][lv].astype(int)].mean(0) for s in ("left", "right"))
+            for lv in LEVELS
+        ]
+    )
 
 
-def _joint_weights(ref: Reference) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) weights of every vertebra vertex towards its inferior and superior facet joints: 1 on the
-    articular surface, falling as (1 - d / R)^2 to 0 at ``JOINT_RADIUS_MM``, 0 on the vertebral body."""
-    from scipy.spatial import cKDTree
-
-    v = ref.vertices
-    out = {"inf": np.zeros(len(v)), "sup": np.zeros(len(v))}
-    fr = reference_frames(ref)
-    for i, lv in enumerate(LEVELS):
-        idx = ref.vertebra(i)
-        post = idx[ref.region[idx] != 0]
-        # the arch below the inferior endplate (the caudally hanging processes, behind the next level) moves
-        # with the disc's lower side as it gets deeper: fully at HANG_MM below
-        c0, c1 = fr.centre[(lv, "inf")], fr.centre[(lv, "sup")]
-        axis = (c1 - c0) / np.linalg.norm(c1 - c0)
-        out["inf"][post] = np.clip(-(v[post] - c0) @ axis / HANG_MM, 0.0, 1.0)
-        for key in ("inf", "sup"):
-            if key == "sup" and i == 0:
-                continue  # T1's superior facets have no partner in the model
-            surf = np.concatenate([ref.sets[f"facet_surface_{key}_{s}"].get(lv, []) for s in ("left", "right")])
-            if len(surf) == 0:
-                continue
-            d = cKDTree(v[surf.astype(int)]).query(v[post])[0]
-            out[key][post] = np.maximum(out[key][post], np.clip(1.0 - d / JOINT_RADIUS_MM, 0.0, 1.0) ** 2)
-    return out["inf"], out["sup"]
+def _mid_frame(n_sup: np.ndarray, n_inf: np.ndarray) -> np.ndarray:
+    m = n_sup + n_inf
+    return endplate_frame(m / np.linalg.norm(m))
 
 
-def build_real_patient(
-    p, turn_deg, ref, fr, weights, body_factor, joints=None, disc_mm=None
-) -> tuple[np.ndarray, dict]:
-    """Vertices (N, 3) mm of one patient in its placed frame, and its true parameters."""
+@dataclass
+class Pose:
+    """Similarities of one patient in the construction frame: ``x -> s R x + t`` per vertebra (T1..L5), the
+    pelvis's similarity after its sacral turn, and the turn."""
+
+    scale: float
+    rot: np.ndarray  # (17, 3, 3)
+    trans: np.ndarray  # (17, 3) mm
+    pelvis: tuple  # (r (3, 3), t (3,)) applied after turn_pelvis
+    turn_deg: float
+
+    def sacrum(self, fr: ReferenceFrames, x: np.ndarray) -> np.ndarray:
+        return self.scale * turn_pelvis(x, np.ones(len(x)), fr, self.turn_deg) @ self.pelvis[0].T + self.pelvis[1]
+
+    def vertebra(self, i: int, x: np.ndarray) -> np.ndarray:
+        return self.scale * x @ self.rot[i].T + self.trans[i]
+
+
+def pose_column(p: PatientParameters, turn_deg: float, fr: ReferenceFrames, pivots: np.ndarray, open_mm: np.ndarray):
+    """Every vertebra a rigid body (times the patient's scale), turned to the orientation the patient's chain
+    (:func:`alignment.build_chain`) gives its mid-axis, and hinged on the level below at the joint pivot:
+    the pivot point of both levels coincides, then the upper one is lifted by ``open_mm`` (17,) along the disc's
+    mean endplate normal.  Returns the Pose (with the patient's PI, pelvic radius and hip width set in p)."""
     r, s, t, rot_sac, pi, radius = pelvis_similarity(fr, turn_deg, p.PT, p.scale)
     heads = {k: s * r @ c + t for k, c in fr.head_centre.items()}
-    p = replace(
-        p,
-        PI=pi,
-        pelvic_radius=radius,
-        fh_radius=fr.head_radius["L"] * s,
-        hip_width=float(np.linalg.norm(heads["R"] - heads["L"])),
-    )
-    chain = build_chain(p, fr.body_height * body_factor, fr.disc_height if disc_mm is None else disc_mm)
-    # the S1 centre's medio-lateral offset from the hip-axis midpoint: the column stands on the real plate
-    s1 = s * r @ rot_sac_point(fr, rot_sac) + t
-    chain.centres += s1 - chain.centres[0]
-    v = ref.vertices
-    out = np.empty_like(v)
-    pelvis = ref.level < 0
-    sac = np.isin(ref.region, [11, 12])
-    base = v.copy()
-    base[sac] = fr.si_centre + (v[sac] - fr.si_centre) @ rot_sac.T
-    out[pelvis] = s * base[pelvis] @ r.T + t
-
-    def endplate_map(i: int, key: str, x: np.ndarray) -> np.ndarray:
-        if i == len(LEVELS):  # the S1 plate moves with the pelvis (after the sacral turn)
-            return s * (fr.si_centre + (x - fr.si_centre) @ rot_sac.T) @ r.T + t
+    p = replace(p, PI=pi, pelvic_radius=radius, fh_radius=fr.head_radius["L"] * s)
+    p = replace(p, hip_width=float(np.linalg.norm(heads["R"] - heads["L"])))
+    target = build_chain(p, fr.body_height, fr.disc_height)
+    pose = Pose(s, np.empty((17, 3, 3)), np.empty((17, 3)), (r, t), turn_deg)
+    lower_n = r @ rot_sac @ fr.normal[("S1", "sup")]
+    for i in range(len(LEVELS) - 1, -1, -1):
         lv = LEVELS[i]
-        pos = pos_sup(i) if key == "sup" else pos_inf(i)
-        rot = chain.frames[pos] @ endplate_frame(fr.normal[(lv, key)]).T
-        return chain.centres[pos] + s * (x - fr.centre[(lv, key)]) @ rot.T
+        m_ref = _mid_frame(fr.normal[(lv, "sup")], fr.normal[(lv, "inf")])
+        m_tgt = _mid_frame(target.normals[pos_sup(i)], target.normals[pos_inf(i)])
+        rot = m_tgt @ m_ref.T
+        below = pose.sacrum(fr, pivots[i][None])[0] if i == len(LEVELS) - 1 else pose.vertebra(i + 1, pivots[i])
+        axis = rot @ fr.normal[(lv, "inf")] + lower_n
+        pose.rot[i] = rot
+        pose.trans[i] = below - s * rot @ pivots[i] + open_mm[i] * axis / np.linalg.norm(axis)
+        lower_n = rot @ fr.normal[(lv, "sup")]
+    return pose, p
 
-    u_inf, u_sup = joints if joints is not None else (np.zeros(len(v)), np.zeros(len(v)))
-    for i in range(len(LEVELS)):
-        idx = ref.vertebra(i)
-        x, w = v[idx], weights[idx, None]
-        own = (1.0 - w) * endplate_map(i, "inf", x) + w * endplate_map(i, "sup", x)
-        # a facet joint's two sides move with the same map, the mean of the two endplates facing across the
-        # disc: the joint keeps the reference's congruence and clearance whatever the disc does
-        below = 0.5 * (endplate_map(i, "inf", x) + endplate_map(i + 1, "sup", x))
-        a, b = u_inf[idx, None], u_sup[idx, None]
-        out[idx] = (1.0 - a - b) * own + a * below
-        if i > 0:
-            above = 0.5 * (endplate_map(i - 1, "inf", x) + endplate_map(i, "sup", x))
-            out[idx] += b * above
-    s1_rim = out[ref.landmarks.rim_sup["S1"]]
+
+def pose_truth(p: PatientParameters, pose: Pose, fr: ReferenceFrames, s1_rim: np.ndarray) -> dict:
+    """The true parameters of a posed patient: the chain of the reference endplate planes (centre, normal)
+    carried by the imposed similarities (no fit of the patient mesh), then :func:`alignment.true_parameters`."""
+    centres, normals = np.empty((N_POS, 3)), np.empty((N_POS, 3))
+    centres[0] = pose.sacrum(fr, fr.centre[("S1", "sup")][None])[0]
+    normals[0] = pose.pelvis[0] @ _pelvic_frame(fr, pose.turn_deg)[0] @ fr.normal[("S1", "sup")]
+    for i, lv in enumerate(LEVELS):
+        for pos, key in ((pos_sup(i), "sup"), (pos_inf(i), "inf")):
+            centres[pos] = pose.vertebra(i, fr.centre[(lv, key)])
+            normals[pos] = pose.rot[i] @ fr.normal[(lv, key)]
+    sag = np.degrees(np.arctan2(normals[:, 1], normals[:, 2]))
+    cor = np.degrees(np.arctan2(normals[:, 0], normals[:, 2]))
+    m = normals[1:] + normals[:-1]
+    lengths = np.einsum("ij,ij->i", centres[1:] - centres[:-1], m / np.linalg.norm(m, axis=1, keepdims=True))
+    frames = np.stack([endplate_frame(n) for n in normals])
+    chain = Chain(sag, cor, normals, centres, frames, lengths)
     truth = true_parameters(p, chain, s1_rim)
     truth.update(
         {
-            "FH_radius_L": fr.head_radius["L"] * s,
-            "FH_radius_R": fr.head_radius["R"] * s,
+            "FH_radius_L": fr.head_radius["L"] * pose.scale,
+            "FH_radius_R": fr.head_radius["R"] * pose.scale,
             "HA_width": p.hip_width,
-            "sacral_turn_deg": turn_deg,
+            "sacral_turn_deg": pose.turn_deg,
         }
     )
-    placement = Rotation.from_euler("z", p.axial_rotation_deg, degrees=True).as_matrix()
-    return out @ placement.T + p.translation, truth
+    return truth
 
 
-#: closest body-to-body distance (mm) every disc of a patient keeps; a narrowed or wedged disc that would come
-#: closer is made higher (the disc height is imposed, so the truth follows)
+def aim(p: PatientParameters, turn_deg: float, fr: ReferenceFrames, pivots: np.ndarray, s1_rim: np.ndarray):
+    """The patient with its chain targets corrected so that the rigid column has the drawn LL, T4-T12 and
+    T1-T4 kyphosis: the reference's own body wedges (kept by the rigid vertebrae) shift the endplates at the
+    ends of each span from the chain's; two fixed-point steps leave under 0.1 deg."""
+    goal = {"LL": p.LL, "TK_T4T12": p.TK_T4T12, "TK_T1T4": p.TK_T1T4}
+    q = p
+    for _ in range(3):
+        pose, posed = pose_column(q, turn_deg, fr, pivots, np.zeros(len(LEVELS)))
+        t = pose_truth(posed, pose, fr, pose.sacrum(fr, s1_rim))
+        got = {"LL": t["LL"], "TK_T4T12": t["TK_T4T12"], "TK_T1T4": t["TK_T1T12"] - t["TK_T4T12"]}
+        q = replace(q, **{k: getattr(q, k) + goal[k] - got[k] for k in goal})
+    return q
+
+
+def pose_vertices(pose: Pose, ref: Reference, fr: ReferenceFrames, pelvis_w: np.ndarray) -> np.ndarray:
+    """(N, 3) mm: every vertebra by its similarity, the pelvis turned by its weights then placed."""
+    v = ref.vertices
+    out = np.empty_like(v)
+    pel = ref.level < 0
+    out[pel] = pose.scale * turn_pelvis(v[pel], pelvis_w[pel], fr, pose.turn_deg) @ pose.pelvis[0].T + pose.pelvis[1]
+    for i in range(len(LEVELS)):
+        idx = ref.vertebra(i)
+        out[idx] = pose.vertebra(i, v[idx])
+    return out
+
+
+#: closest body-to-body distance (mm) every disc keeps; a joint whose bones cross or whose bodies come closer
+#: is opened along its disc axis (the imposed disc height grows, so the truth follows)
 MIN_BODY_GAP_MM = 1.0
+OPEN_STEP_MM = 0.5
+#: the most a joint is opened (mm); a patient whose joint needs more is not drawn (at L5-S1 a large coronal
+#: tilt of the disc, the lower end of a long curve, presses the L5 inferior facet into the sacrum)
+MAX_OPEN_MM = 5.0
 
 
-def open_discs(p, turn, ref, fr, weights, body_factor, joints, bodies, rounds: int = 4):
-    """`build_real_patient` with every disc high enough that the bodies keep ``MIN_BODY_GAP_MM`` apart."""
-    from scipy.spatial import cKDTree
+def separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies, max_open_mm: float = MAX_OPEN_MM):
+    """Pose a patient with every joint from L5-S1 upwards opened in ``OPEN_STEP_MM`` steps until its two bones
+    do not cross and their bodies keep ``MIN_BODY_GAP_MM``; returns vertices, pose, patient, openings (mm), or
+    None when a joint needs more than ``max_open_mm``."""
+    from spinecohort.anatomy.contacts import pair_contact
 
-    disc = fr.disc_height.copy()
-    for _ in range(rounds):
-        v, truth = build_real_patient(p, turn, ref, fr, weights, body_factor, joints, disc)
-        gaps = np.array([cKDTree(v[bodies[k]]).query(v[bodies[k + 1]])[0].min() for k in range(len(LEVELS))])
-        short = gaps < MIN_BODY_GAP_MM
-        if not short.any():
-            break
-        disc[short] += (MIN_BODY_GAP_MM - gaps[short] + 0.5) / (p.disc_factor[short] * p.scale)
-    return v, truth
+    opening = np.zeros(len(LEVELS))
+    pose, q = pose_column(p, turn, fr, pivots, opening)
+    v = pose_vertices(pose, ref, fr, pelvis_w)
+    # the bones below joint i are settled when it is opened, and opening it moves only the bones above
+    for i in range(len(LEVELS) - 1, -1, -1):
+        idx = ref.vertebra(i)
+        lower = cKDTree(v[bodies[i + 1]])
+        while True:
+            pose, q = pose_column(p, turn, fr, pivots, opening)
+            v[idx] = pose.vertebra(i, ref.vertices[idx])
+            crossing, _ = pair_contact(v, pairs[i])
+            gap = float(lower.query(v[bodies[i]])[0].min())
+            if crossing == 0 and gap >= MIN_BODY_GAP_MM:
+                break
+            if opening[i] >= max_open_mm:
+                return None  # a joint this far apart is no longer a disc: the caller draws another patient
+            opening[i] += OPEN_STEP_MM
+    return v, pose, q, opening
 
 
 def first_use_reference(ref: Reference) -> Reference:
@@ -348,29 +405,50 @@ def generate_real_cohort(
     progress=None,
 ):
     """Draw patients on the reference until ``n_patients`` meet the inclusion criteria."""
+    from spinecohort.anatomy.contacts import bone_pairs
     from spinecohort.cohort.synthetic import SyntheticCohort
 
     ref = first_use_reference(load_reference(reference))
     fr = reference_frames(ref)
-    weights = _vertebra_weights(ref, fr)
-    joints = _joint_weights(ref)
+    pivots = joint_pivots(ref)
+    pelvis_w = pelvis_turn_weights(ref, fr)
+    pairs = bone_pairs(ref.level, ref.region, ref.vertices[:, 0], ref.faces)
     bodies = [np.flatnonzero((ref.level == i) & (ref.region == 0)) for i in range(len(LEVELS))]
     bodies.append(np.flatnonzero(ref.region == 12))  # the S1 plate region
+    s1_rim_ref = ref.vertices[ref.landmarks.rim_sup["S1"]]
     rng = np.random.default_rng(seed)
-    verts, rows, n_cand = [], [], 0
+    verts, rows, n_cand, n_apart, openings = [], [], 0, 0, []
     while len(verts) < n_patients:
         if n_cand >= max_candidates:
             raise RuntimeError(f"only {len(verts)} of {max_candidates} candidates met the criteria {criteria}")
         n_cand += 1
         p, turn = draw_real_patient(rng, f"P{len(verts) + 1:02d}", fr)
-        body_factor = rng.normal(1.0, BODY_HEIGHT_SD, size=len(LEVELS))
-        v, truth = open_discs(p, turn, ref, fr, weights, body_factor, joints, bodies)
+        p = aim(p, turn, fr, pivots, s1_rim_ref)
+        pose, q = pose_column(p, turn, fr, pivots, np.zeros(len(LEVELS)))
+        if not meets_criteria(pose_truth(q, pose, fr, pose.sacrum(fr, s1_rim_ref)), criteria):
+            continue  # cheap screen on the closed column; the opened one is checked again below
+        posed = separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies)
+        if posed is None:
+            n_apart += 1
+            continue
+        v, pose, q, opening = posed
+        openings.append(opening)
+        truth = pose_truth(q, pose, fr, pose.sacrum(fr, s1_rim_ref))
         if not meets_criteria(truth, criteria):
             continue
-        verts.append(v)
-        rows.append({"ID": p.ID, "age": round(p.age, 1), "sex": p.sex, **truth})
+        placement = Rotation.from_euler("z", q.axial_rotation_deg, degrees=True).as_matrix()
+        verts.append(v @ placement.T + q.translation)
+        rows.append({"ID": q.ID, "age": round(q.age, 1), "sex": q.sex, **truth})
         if progress is not None:
             progress(len(verts), n_patients)
     log.info("accepted %d of %d candidates (%.0f %%)", n_patients, n_cand, 100 * n_patients / n_cand)
+    opened = np.array(openings)
+    log.info(
+        "%d candidates needed a joint opened over %.1f mm; joints opened by %.2f mm on average, at most %.1f mm",
+        n_apart,
+        MAX_OPEN_MM,
+        opened.mean(),
+        opened.max(),
+    )
     ids = [r["ID"] for r in rows]
     return SyntheticCohort(ids, np.stack(verts), ref.faces, ref.landmarks, pd.DataFrame(rows), n_cand)
