@@ -12,7 +12,7 @@ README gives sources, licences and processing):
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -65,15 +65,25 @@ def load_reference(path: str | Path | None = None) -> Reference:
     path = Path(path) if path is not None else default_path()
     try:
         with np.load(path, allow_pickle=False) as z:
-            sets = json.loads(str(z["sets_json"]))
+            sets = {
+                k: {kk: np.asarray(vv, dtype=np.int64) for kk, vv in v.items()}
+                for k, v in json.loads(str(z["sets_json"])).items()
+            }
+            # the endplate landmarks are rim bands (the clinical endplate line); the hex template is placed and
+            # morphed on the whole endplate surface, which the landmarks carry beside them
+            landmarks = replace(
+                Landmarks.from_dict(json.loads(str(z["landmarks_json"]))),
+                endplate_full_sup=sets.get("endplate_full_sup", {}),
+                endplate_full_inf=sets.get("endplate_full_inf", {}),
+            )
             return Reference(
                 vertices=z["vertices"].astype(np.float64),
                 faces=z["faces"].astype(np.int64),
                 region=z["region"],
                 level=z["level"],
                 side=z["side"],
-                landmarks=Landmarks.from_dict(json.loads(str(z["landmarks_json"]))),
-                sets={k: {kk: np.asarray(vv, dtype=np.int64) for kk, vv in v.items()} for k, v in sets.items()},
+                landmarks=landmarks,
+                sets=sets,
                 build=json.loads(str(z["build_json"])),
             )
     except (OSError, KeyError, ValueError) as exc:
