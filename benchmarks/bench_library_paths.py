@@ -31,10 +31,8 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -42,14 +40,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_store  # noqa: E402  (the sibling benchmark's job runner)
+
 ROOT = Path(__file__).resolve().parents[1]
 HERE = Path(__file__).resolve().parent
 VARIANTS = ("hand", "zarr")
-#: Snakemake's environment for a threads: 1 job
-ONE_THREAD = {
-    k: "1"
-    for k in ("OMP_NUM_THREADS", "GOTO_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-}
 _JOB = """
 import json, sys
 sys.path.insert(0, {here!r})
@@ -132,31 +128,9 @@ def use(variant: str, flush_models: int) -> None:
 
 # ------------------------------------------------------------------------------------------- the stage
 def run_jobs(cmds: list[list[str]], jobs: int, logdir: Path) -> tuple[float, list[dict]]:
-    """Run the processes ``jobs`` at a time; (wall of all, per process wall, CPU, kernel CPU, peak RSS, stdout)."""
-    env = {**os.environ, **ONE_THREAD}
-    out, running, todo = [None] * len(cmds), {}, list(enumerate(cmds))
+    """Run the processes ``jobs`` at a time (``bench_store.run_jobs``); (wall of all, per process records)."""
     t_all = time.perf_counter()
-    while todo or running:
-        while todo and len(running) < jobs:
-            k, cmd = todo.pop(0)
-            fo, fe = open(logdir / f"{k}.out", "w"), open(logdir / f"{k}.err", "w")
-            proc = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True, env=env)
-            running[proc.pid] = (k, time.perf_counter(), fo, fe)
-        pid, status, ru = os.wait4(-1, 0)
-        if pid not in running:
-            continue
-        k, t0, fo, fe = running.pop(pid)
-        fo.close()
-        fe.close()
-        if os.waitstatus_to_exitcode(status) != 0:
-            raise RuntimeError(f"{cmds[k][:3]} failed: {(logdir / f'{k}.err').read_text()[-3000:]}")
-        out[k] = {
-            "wall_s": time.perf_counter() - t0,
-            "cpu_s": ru.ru_utime + ru.ru_stime,
-            "sys_s": ru.ru_stime,
-            "rss_mb": ru.ru_maxrss / 1024,
-            "out": (logdir / f"{k}.out").read_text(),
-        }
+    out = bench_store.run_jobs(cmds, jobs, logdir)
     return time.perf_counter() - t_all, out
 
 
