@@ -463,3 +463,12 @@ def test_sessions_are_bounded_end_when_idle_and_refuse_other_origins(test_run, t
     text = log.read_text()
     assert "refused a websocket to session" in text and "Origin 'http://evil.example.com'" in text
     assert "idle for 3 s" in text and "Traceback" not in text, text
+
+
+def test_the_page_header_names_the_source_without_the_servers_path(data):
+    from spinecohort.web.data import describe
+
+    line = describe(data)
+    where = data.src.origin.partition(" ")[2]
+    assert where.startswith("/") and where not in line  # a visitor learns no server path
+    assert line.startswith(f"results {Path(where).name}: ") and "virtual models" in line

@@ -509,6 +509,7 @@ def open_data(
 
 
 def describe(data: CohortData) -> str:
-    """One line for the page header and the log."""
+    """One line for the page header: the source's kind and folder name (never the server's path) and counts."""
     n_p = int((data.table["kind"] != "virtual").sum()) if "kind" in data.table.columns else 0
-    return f"{data.src.origin}: {len(data.virtual):,} virtual models, {n_p} patient models"
+    kind, _, where = data.src.origin.partition(" ")
+    return f"{kind} {Path(where).name}: {len(data.virtual):,} virtual models, {n_p} patient models"
