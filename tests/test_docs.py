@@ -10,18 +10,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 # Markdown links and images: [text](target) / ![alt](target), target up to a space, ) or "title".
 LINK = re.compile(r"!?\[[^\]]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
-# Pages other branches write; until those branches are merged the link to them may dangle.  Only these,
-# and only while absent: once a file exists every link to it is checked like any other.
-PAGES_OF_OTHER_BRANCHES = {
-    "docs/howto/own-cohort.md",
-    "docs/howto/platform.md",
-    "docs/howto/release.md",
-    "docs/howto/read-the-store.md",
-    "docs/explanation/library-paths.md",
-    "docs/explanation/anatomy.md",
-    "docs/explanation/registration.md",
-    "docs/explanation/validation-references.md",
-}
 
 
 def markdown_files():
@@ -59,9 +47,6 @@ def test_every_relative_link_resolves():
         for number, target in relative_links(page):
             resolved = (page.parent / target).resolve()
             if resolved.exists():
-                continue
-            rel = resolved.relative_to(ROOT).as_posix() if resolved.is_relative_to(ROOT) else str(resolved)
-            if rel in PAGES_OF_OTHER_BRANCHES:
                 continue
             broken.append(f"{page.relative_to(ROOT)}:{number}: {target}")
     assert not broken, "links to missing files:\n" + "\n".join(broken)
