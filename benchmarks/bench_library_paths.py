@@ -145,16 +145,7 @@ def stage(variant: str, folder: Path, cfg: dict, inputs: dict, flush_models: int
     grid, shard_models = cfg["grid"], cfg["store"]["shard_models"]
     folder.mkdir(parents=True)
     store = folder / "cohort.zarr"
-    with np.load(inputs["ssm"]) as z:
-        n_tri = z["mean"].shape[0]
-    with np.load(inputs["hex_ssm"]) as z:
-        n_hex = z["mean"].shape[0]
-    with np.load(inputs["template"]) as z:
-        surface_vertex = z["surface_vertex"]
-    S.create_store(
-        store, n_tri, n_hex, grid["n_modes"], grid["levels"], shard_models, {}, cfg["store"]["encoding"],
-        surface_vertex=surface_vertex,
-    )  # fmt: skip
+    S.create_store_for_run(store, inputs["ssm"], inputs["hex_ssm"], inputs["template"], grid, cfg["store"])
     shards = range(S.n_shards(S.n_models(grid["n_modes"], grid["levels"]), shard_models))
     cmds, outs = [], {}
     for s in shards:

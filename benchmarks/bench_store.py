@@ -198,23 +198,15 @@ def stage(tmp: Path, cfg: dict, inputs: dict, a) -> None:
     store = tmp / "cohort.zarr"
     t_stage = time.perf_counter()
     t0, c0 = time.perf_counter(), time.process_time()
-    with np.load(inputs["ssm"]) as z:
-        n_tri = z["mean"].shape[0]
-    with np.load(inputs["hex_ssm"]) as z:
-        n_hex = z["mean"].shape[0]
-    with np.load(inputs["template"]) as z:
-        surface_vertex = z["surface_vertex"]
-    S.create_store(
+    root = S.create_store_for_run(
         store,
-        n_tri,
-        n_hex,
-        grid["n_modes"],
-        grid["levels"],
-        a.shard_models,
-        {},
-        cfg["store"]["encoding"],
-        surface_vertex=surface_vertex,
+        inputs["ssm"],
+        inputs["hex_ssm"],
+        inputs["template"],
+        grid,
+        {**cfg["store"], "shard_models": a.shard_models},
     )
+    n_tri, n_hex = root["tri/points"].shape[1], root.attrs["n_hex_nodes"]
     init = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
     print(
         f"store: {total} models x ({n_tri} tri + {n_hex} hex nodes), shards of {a.shard_models}, "

@@ -1,19 +1,11 @@
 # Adapter: create the empty virtual-cohort store (results/cohort.zarr) with the SSM checksums and the grid.
 from pathlib import Path
 
-import numpy as np
-
 from spinecohort.logs import to_file
-from spinecohort.store.zarr_store import create_store, file_sha256
+from spinecohort.store.zarr_store import create_store_for_run, file_sha256
 
 with to_file(snakemake.log[0]) as log:
     grid, settings = snakemake.params.grid, snakemake.params.store
-    with np.load(snakemake.input.ssm) as z:
-        n_tri = z["mean"].shape[0]
-    with np.load(snakemake.input.hex_ssm) as z:
-        n_hex = z["mean"].shape[0]
-    with np.load(snakemake.input.template) as z:  # the hex nodes that are tri vertices: stored once
-        surface_vertex = z["surface_vertex"]
     path = Path(snakemake.output[0]).parent
     attrs = {
         "ssm_sha256": file_sha256(snakemake.input.ssm),
@@ -21,19 +13,11 @@ with to_file(snakemake.log[0]) as log:
         "grid": grid,
         "units": "mm",
     }
-    root = create_store(
-        path,
-        n_tri,
-        n_hex,
-        grid["n_modes"],
-        grid["levels"],
-        settings["shard_models"],
-        attrs=attrs,
-        encoding=settings["encoding"],
-        chunk_models=settings["chunk_models"],
-        overwrite=True,
-        surface_vertex=surface_vertex,
+    inputs = snakemake.input
+    root = create_store_for_run(
+        path, inputs.ssm, inputs.hex_ssm, inputs.template, grid, settings, attrs=attrs, overwrite=True
     )
+    n_tri, n_hex = root["tri/points"].shape[1], root.attrs["n_hex_nodes"]
     log.info(
         "%s: %d models x (%d tri + %d hex nodes, %d of them stored once as tri vertices) in %d shards of %d, "
         "encoding %s (error bound %.2g mm)",
@@ -41,7 +25,7 @@ with to_file(snakemake.log[0]) as log:
         root.attrs["n_models"],
         n_tri,
         n_hex,
-        len(surface_vertex),
+        root["hex/surface_vertex"].shape[0],
         root.attrs["n_shards"],
         settings["shard_models"],
         settings["encoding"],

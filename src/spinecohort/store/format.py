@@ -252,6 +252,40 @@ def create_store(
     return root
 
 
+def create_store_for_run(
+    path: str | Path,
+    ssm: str | Path,
+    hex_ssm: str | Path,
+    template: str | Path,
+    grid: dict,
+    store: dict,
+    attrs: dict | None = None,
+    overwrite: bool = False,
+) -> zarr.Group:
+    """The run's empty store, as ``init_store`` makes it: node counts from the SSM's and the hex SSM's means,
+    the shared skin from the template's ``surface_vertex``, the grid (``n_modes``, ``levels``) and the store
+    settings (``shard_models``, ``encoding``, ``chunk_models``) of the config."""
+    with np.load(ssm) as z:
+        n_tri = z["mean"].shape[0]
+    with np.load(hex_ssm) as z:
+        n_hex = z["mean"].shape[0]
+    with np.load(template) as z:  # the hex nodes that are tri vertices: stored once
+        surface_vertex = z["surface_vertex"]
+    return create_store(
+        path,
+        n_tri,
+        n_hex,
+        grid["n_modes"],
+        grid["levels"],
+        store["shard_models"],
+        attrs=attrs,
+        encoding=store["encoding"],
+        chunk_models=store.get("chunk_models"),
+        overwrite=overwrite,
+        surface_vertex=surface_vertex,
+    )
+
+
 def _shard_objects(path: Path, shard: int) -> list[Path]:
     """Files holding shard ``shard``: the two point shards and the weights chunk (default key encoding)."""
     return [
