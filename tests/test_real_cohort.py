@@ -100,3 +100,38 @@ def test_rigid_column_reaches_the_drawn_lordosis_and_kyphosis():
         assert abs(t["LL"] - p.LL) < 0.1 and abs(t["TK_T4T12"] - p.TK_T4T12) < 0.1
         assert abs(t["TK_T1T12"] - t["TK_T4T12"] - p.TK_T1T4) < 0.1
         assert abs(t["PI"] - p.PI) < 1e-9 and abs(t["PT"] - p.PT) < 1e-9
+
+
+def test_renumbering_the_reference_keeps_every_landmark_on_its_vertices():
+    """The reference shuffled, then first_use_reference: every landmark set, the whole endplate surfaces
+    included, must name the same points (compared as coordinates) as the reference's."""
+    from dataclasses import replace
+
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import first_use_reference
+    from spinecohort.cohort.synthetic import first_use_order
+
+    base = load_reference()
+    shuffle = np.random.default_rng(3).permutation(len(base.vertices))
+    back = np.argsort(shuffle)
+    ref = replace(
+        base,
+        vertices=base.vertices[shuffle],
+        faces=back[base.faces],
+        region=base.region[shuffle],
+        level=base.level[shuffle],
+        side=base.side[shuffle],
+        landmarks=base.landmarks.renumbered(shuffle),
+    )
+    new = first_use_reference(ref)
+    assert ref.landmarks.endplate_full_sup  # the reference carries the whole endplates
+    for name, per in ref.landmarks._sets().items():
+        for key, idx in per.items():
+            after = new.landmarks._sets()[name][key]
+            got, want = new.vertices[after], ref.vertices[idx]
+            if name != "anchors":  # sets are sorted by vertex number, which renumbering changes
+                got, want = got[np.lexsort(got.T)], want[np.lexsort(want.T)]
+            assert np.array_equal(got, want), f"{name}[{key}]"
+    order = first_use_order(ref.faces, len(ref.vertices))
+    assert np.array_equal(new.vertices, ref.vertices[order])
+    assert np.array_equal(new.landmarks.part, ref.landmarks.part[order])

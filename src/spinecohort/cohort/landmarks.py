@@ -115,6 +115,19 @@ class Landmarks:
         )
         return rows, restricted
 
+    def renumbered(self, order: np.ndarray) -> Landmarks:
+        """These landmarks on the vertices renumbered so that new vertex ``k`` is old vertex ``order[k]``: the
+        part labels reordered and every index set mapped to the new numbers (sorted; ``anchors`` keep their
+        one-vertex-per-level order)."""
+        inv = np.empty_like(order)
+        inv[order] = np.arange(len(order))
+        sets = {
+            name: {k: inv[v] if name == "anchors" else np.sort(inv[v]) for k, v in per.items()}
+            for name, per in self._sets().items()
+            if name != "pubic_symphysis"
+        }
+        return replace(self, part=self.part[order], pubic_symphysis=np.sort(inv[self.pubic_symphysis]), **sets)
+
     def _sets(self) -> dict[str, dict[str, np.ndarray]]:
         return {
             "endplate_sup": self.endplate_sup,

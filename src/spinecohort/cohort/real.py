@@ -371,19 +371,7 @@ def first_use_reference(ref: Reference) -> Reference:
     def remap(sets):
         return {k: np.sort(inv[v]) for k, v in sets.items()}
 
-    new_lm = replace(
-        lm,
-        part=lm.part[order],
-        endplate_sup=remap(lm.endplate_sup),
-        endplate_inf=remap(lm.endplate_inf),
-        rim_sup=remap(lm.rim_sup),
-        rim_inf=remap(lm.rim_inf),
-        femoral_head=remap(lm.femoral_head),
-        body=remap(lm.body),
-        pubic_symphysis=np.sort(inv[lm.pubic_symphysis]),
-        anchors={k: inv[v] for k, v in lm.anchors.items()},
-        meta={**lm.meta, "generator": "spinecohort.cohort.real"},
-    )
+    new_lm = replace(lm.renumbered(order), meta={**lm.meta, "generator": "spinecohort.cohort.real"})
     return Reference(
         ref.vertices[order],
         inv[ref.faces],
