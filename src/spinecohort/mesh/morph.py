@@ -23,8 +23,10 @@ import pandas as pd
 
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
 from spinecohort.mesh.quality.verdict import scaled_jacobian
+from spinecohort.mesh.radial import axial_map, closed_body, in_plane_map, plate_map, ring_lines, shared_outline
 from spinecohort.mesh.registration import nonrigid_register, surface_distance
 from spinecohort.mesh.template import HexTemplate, OGrid, core_boundary_ids, fill_discs
+from spinecohort.mesh.template import local_faces as _faces_of
 
 log = logging.getLogger(__name__)
 
@@ -47,15 +49,8 @@ class MorphParameters:
     bound_mm: float = 0.04  # multilayer stop: mean surface distance
     max_layers: int = 0  # BCPD layers amplify round-off into mm of interior nodes (docs/explanation/hex-mesh.md)
     project: bool = True  # final closest-point projection of the surface nodes
+    surface_map: str = "closest"  # bodies: closest (closest points, `project`) | rays (:mod:`spinecohort.mesh.radial`)
     min_scaled_jacobian: float = 0.3  # a registration layer is kept only if the block stays above this
-
-
-def _faces_of(faces: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The triangles whose three vertices are all in ``vertices``, re-indexed into that subset."""
-    keep = np.isin(faces, vertices).all(1)
-    remap = np.full(faces.max() + 1, -1)
-    remap[vertices] = np.arange(len(vertices))
-    return remap[faces[keep]]
 
 
 def _closest_points(points: np.ndarray, target: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -219,6 +214,31 @@ def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParamet
     return current, history
 
 
+def ray_morphed_bodies(template: HexTemplate, mean_points, mean_faces, landmarks: Landmarks) -> dict[str, np.ndarray]:
+    """Every body block mapped onto its closed body surface by rays (:mod:`spinecohort.mesh.radial`): in-plane,
+    then the two endplate layers facing each other across each disc given a shared outline, then axial.
+    Returns level -> (n_layers, n2, 3) mm."""
+    grid, n2 = template.grid, len(template.grid.nodes)
+    hex_layers = template.nodes[: template.n_hex_nodes].reshape(len(template.layers), n2, 3)
+    lines = ring_lines(grid, core_boundary_ids(template.resolution.core_cells))
+    n_core = len(grid.nodes) - grid.shell_ring * len(grid.outer)
+    blocks, bodies = {}, {}
+    for lv in LEVELS:
+        ids = [i for i, ly in enumerate(template.layers) if ly["kind"] == "body" and ly["level"] == lv]
+        body_ids = landmarks.body[lv]
+        bodies[lv] = closed_body(mean_points[body_ids], _faces_of(mean_faces, body_ids))
+        blocks[lv] = in_plane_map(hex_layers[ids], grid.outer, np.arange(n_core), lines, bodies[lv])
+    for upper, lower in zip(LEVELS[:-1], LEVELS[1:]):  # LEVELS run cranial to caudal
+        blocks[lower][-1], blocks[upper][0] = shared_outline(blocks[lower][-1], blocks[upper][0])
+    s1 = hex_layers[[i for i, ly in enumerate(template.layers) if ly["kind"] == "s1"]]
+    s1[0], blocks[LEVELS[-1]][0] = shared_outline(s1[0], blocks[LEVELS[-1]][0])
+    inner = n_core + (grid.shell_ring - 2) * len(grid.outer) + np.arange(len(grid.outer))  # the ring inside the shell
+    out = {lv: axial_map(blocks[lv], grid.outer, inner, bodies[lv]) for lv in LEVELS}
+    plate = landmarks.endplate_surface("sup", "S1")
+    out["S1"] = plate_map(s1, mean_points[plate], _faces_of(mean_faces, plate))
+    return out
+
+
 def morph_template(
     template: HexTemplate,
     mean_points: np.ndarray,
@@ -239,6 +259,7 @@ def morph_template(
         for lv in LEVELS
     ]
     parts.append(("S1", [0], landmarks.endplate_surface("sup", "S1")))
+    rays = ray_morphed_bodies(template, mean_points, mean_faces, landmarks) if params.surface_map == "rays" else {}
     for k, (name, layer_ids, target_ids) in enumerate(parts):
         block = hex_layers[layer_ids]  # (nl, n2, 3)
         is_surface = np.zeros(block.shape[:2], bool)
@@ -254,7 +275,9 @@ def morph_template(
             flat, surf_ids, _block_hexes(grid, block.shape[0]), target, faces, params, before
         )
         after_reg = history[-1]["mean_distance"] if history else before
-        if params.project:
+        if name in rays:
+            moved = rays[name].reshape(-1, 3)
+        elif params.project:
             groups, spread = _projection_groups(
                 block.shape,
                 grid,

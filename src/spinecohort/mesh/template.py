@@ -323,7 +323,10 @@ def layer_plan(res: TemplateResolution) -> list[dict]:
 
 
 def build_template(
-    mean_points: np.ndarray, mean_faces: np.ndarray, landmarks: Landmarks, res: TemplateResolution
+    mean_points: np.ndarray,
+    mean_faces: np.ndarray,
+    landmarks: Landmarks,
+    res: TemplateResolution,
 ) -> HexTemplate:
     """Assemble the template on a triangulated shape (the SSM mean): hex column placed by the endplate
     frames (before morphing), surface elements and ligaments from the shape's own vertices."""
@@ -465,6 +468,14 @@ def build_template(
         grid,
         res,
     )
+
+
+def local_faces(faces: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """The triangles with all three vertices in ``vertices``, re-indexed into that subset."""
+    keep = np.isin(faces, vertices).all(1)
+    remap = np.full(faces.max() + 1, -1)
+    remap[vertices] = np.arange(len(vertices))
+    return remap[faces[keep]]
 
 
 def _layer_index(layers: list[dict], level: str, t: float) -> int:

@@ -1,0 +1,179 @@
+"""Mapping a hex body block onto a real vertebral body surface along rays, layer by layer and column by column.
+
+The block is the template's O-grid body (node layers stacked between the two endplates).  Two ray maps, each
+monotone along its rays, so neither can fold a layer or a column:
+
+* in each node layer, the outer ring goes along its in-plane ray from the layer's centre to the body's wall
+  (``R_wall / R_template``); the core block is scaled about the centre by the same ratio, interpolated by angle,
+  and each ring node keeps its fraction of the straight line from its core-boundary node to its outer node, so a
+  thin cortical ring stays a thin ring (:func:`in_plane_map`);
+* each column of nodes (one O-grid node through all layers) moves along the body's axis so that its end nodes
+  reach the endplates where a ray along the axis crosses them, the layers between following linearly
+  (:func:`axial_map`): a concave endplate is followed node by node, without the sideways slide of a
+  closest-point projection, which on a concave or partial endplate patch folds the layer under it.
+
+The endplate layers take the in-plane ratios of the layer next to them: at the rim the wall rounds into the
+endplate, and a ray in the endplate's own plane would cut the bevel.  The openings of the labeled body (where
+the pedicles leave it) are closed first (:func:`closed_body`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from spinecohort.mesh.vtk_mesh import surface
+
+#: ray-triangle pairs per chunk of the vectorised test (memory ~ chunk x 10 floats)
+_CHUNK_PAIRS = 4_000_000
+
+
+def farthest_hits(origins: np.ndarray, directions: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n,) distance (in units of ``directions``) from each origin (n, 3) along its direction (n, 3) to the
+    farthest crossing of the triangles (Moller-Trumbore, vectorised); ``inf`` where a ray crosses nothing.
+
+    The farthest, not the first: from inside a body a ray leaves it once, and a ray that grazes a concave
+    endplate's rim twice belongs to the outer crossing.
+    """
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    out = np.full(len(directions), -np.inf)
+    step = max(1, _CHUNK_PAIRS // max(len(faces), 1))
+    for lo in range(0, len(directions), step):
+        d, o = directions[lo : lo + step], origins[lo : lo + step]
+        s = o[:, None, :] - a[None]  # (n, T, 3)
+        p = np.cross(d[:, None, :], e2[None])
+        q = np.cross(s, e1[None])
+        det = np.einsum("ntk,tk->nt", p, e1)
+        ok = np.abs(det) > 1e-14
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        u = np.einsum("ntk,ntk->nt", p, s) * inv
+        v = np.einsum("nk,ntk->nt", d, q) * inv
+        t = np.einsum("tk,ntk->nt", e2, q) * inv
+        hit = ok & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > 0)
+        out[lo : lo + step] = np.where(hit, t, -np.inf).max(axis=1)
+    out[~np.isfinite(out)] = np.inf
+    return out
+
+
+def closed_body(vertices: np.ndarray, faces: np.ndarray, hole_size_mm: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
+    """The labeled body surface with its openings (pedicle roots) closed: (vertices, triangles)."""
+    mesh = surface(vertices, faces).fill_holes(hole_size_mm).triangulate().clean()
+    return np.asarray(mesh.points, dtype=float), np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
+
+
+def _fill_missing(values: np.ndarray, positions: np.ndarray, k: int = 4) -> np.ndarray:
+    """Values of rays that crossed nothing (a gap in the surface): the mean of the ``k`` nearest that did."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return values
+    if bad.all():
+        raise ValueError("no ray crosses the body surface: is the block inside its body?")
+    from scipy.spatial import cKDTree
+
+    good = np.flatnonzero(~bad)
+    _, nn = cKDTree(positions[good]).query(positions[bad], k=min(k, len(good)))
+    out = values.copy()
+    out[bad] = values[good][nn.reshape(bad.sum(), -1)].mean(axis=1)
+    return out
+
+
+def _interp_periodic(angle: np.ndarray, at: np.ndarray, values: np.ndarray) -> np.ndarray:
+    order = np.argsort(at)
+    a, v = at[order], values[order]
+    return np.interp(angle, np.r_[a[-1] - 2 * np.pi, a, a[0] + 2 * np.pi], np.r_[v[-1], v, v[0]])
+
+
+def in_plane_map(
+    block: np.ndarray, outer: np.ndarray, core_ids: np.ndarray, ring_line: tuple, body: tuple
+) -> np.ndarray:
+    """Each node layer of ``block`` (nl, n2, 3) mm scaled in its plane along rays from its centre to the wall.
+
+    outer: (m,) outer-ring node ids; core_ids: ids of the core block's nodes; ring_line = (ring node ids,
+    their core-boundary node, their outer node, their fraction along that line); body = (vertices, faces)."""
+    nl = block.shape[0]
+    centre = block.mean(axis=1)  # (nl, 3)
+    axis = block[-1].mean(0) - block[0].mean(0)
+    axis /= np.linalg.norm(axis)
+    rel = block[:, outer] - centre[:, None]
+    rel_plane = rel - (rel @ axis)[..., None] * axis
+    r_tmpl = np.linalg.norm(rel_plane, axis=2)  # (nl, m)
+    dirs = rel_plane / r_tmpl[..., None]
+    origins = np.repeat(centre, len(outer), axis=0)
+    r_wall = farthest_hits(origins, dirs.reshape(-1, 3), *body).reshape(nl, -1)
+    ratio = r_wall / r_tmpl
+    ratio[1:-1] = _fill_missing(ratio[1:-1].ravel(), block[1:-1, outer].reshape(-1, 3)).reshape(nl - 2, -1)
+    if nl > 2:  # the endplate layers take the ratios of their neighbours (the rim bevel)
+        ratio[0], ratio[-1] = ratio[1], ratio[-2]
+    u = dirs[:, 0]  # a reference direction per layer for the angle about the axis
+    out = block.copy()
+    for k in range(nl):  # a handful of layers; every array operation inside is over the layer's nodes
+        e1 = u[k] / np.linalg.norm(u[k])
+        e2 = np.cross(axis, e1)
+        ang_outer = np.arctan2(rel_plane[k] @ e2, rel_plane[k] @ e1)
+        rc = block[k, core_ids] - centre[k]
+        s_core = _interp_periodic(np.arctan2(rc @ e2, rc @ e1), ang_outer, ratio[k])
+        rc_plane = rc - (rc @ axis)[:, None] * axis
+        out[k, core_ids] = block[k, core_ids] + rc_plane * (s_core - 1.0)[:, None]
+        out[k, outer] = block[k, outer] + rel_plane[k] * (ratio[k] - 1.0)[:, None]
+    ids, start, end, frac = ring_line
+    out[:, ids] = out[:, start] + frac[None, :, None] * (out[:, end] - out[:, start])
+    return out
+
+
+def axial_map(block: np.ndarray, outer: np.ndarray, inner: np.ndarray, body: tuple) -> np.ndarray:
+    """Each column of ``block`` (nl, n2, 3) mm stretched along the block's axis so that its end nodes reach the
+    endplates; the layers between move linearly.  The outer columns (``outer``, on the wall) take the offsets of
+    the columns just inside them (``inner``): a ray along the wall would meet the rounded rim at an arbitrary
+    height, and the thin outermost ring (cortex, outer annulus) would fold over that step."""
+    nl = block.shape[0]
+    axis = block[-1].mean(0) - block[0].mean(0)
+    axis /= np.linalg.norm(axis)
+    mid = block.mean(axis=0)  # (n2, 3): each column's mid point
+    n = len(mid)
+    up = farthest_hits(mid, np.tile(axis, (n, 1)), *body)
+    down = farthest_hits(mid, np.tile(-axis, (n, 1)), *body)
+    top = (mid - block[-1]) @ axis + _fill_missing(up, mid)
+    bottom = (mid - block[0]) @ axis - _fill_missing(down, mid)
+    top[outer], bottom[outer] = top[inner], bottom[inner]
+    t = np.linspace(0.0, 1.0, nl)[:, None, None]
+    return block + ((1 - t) * bottom[None, :, None] + t * top[None, :, None]) * axis
+
+
+def plate_map(plate: np.ndarray, patch_vertices: np.ndarray, patch_faces: np.ndarray, depth_mm: float = 10.0):
+    """A single node layer (1, n2, 3) mm moved along its normal onto an open endplate patch (the S1 plate):
+    rays from ``depth_mm`` below each node, upwards; a node whose ray misses the patch takes its neighbours'
+    offset."""
+    layer = plate[0]
+    c = layer.mean(0)
+    n = np.linalg.svd(layer - c)[2][-1]
+    n = n if n[2] > 0 else -n
+    origins = layer - depth_mm * n
+    hit = farthest_hits(origins, np.tile(n, (len(layer), 1)), patch_vertices, patch_faces)
+    offset = _fill_missing(hit, origins) - depth_mm
+    return (layer + offset[:, None] * n)[None]
+
+
+def shared_outline(lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two endplate layers (n2, 3) mm facing each other across a disc, each given the mean of their two
+    in-plane shapes about its own centre (heights along the disc's axis kept): the disc between them is then a
+    prism, not a slab sheared by the difference of two bodies' outlines."""
+    cl, cu = lower.mean(0), upper.mean(0)
+    axis = cu - cl
+    axis /= np.linalg.norm(axis)
+    ol, ou = lower - cl, upper - cu
+    hl, hu = ol @ axis, ou @ axis
+    common = 0.5 * ((ol - hl[:, None] * axis) + (ou - hu[:, None] * axis))
+    return cl + common + hl[:, None] * axis, cu + common + hu[:, None] * axis
+
+
+def ring_lines(grid, cb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ring node ids, their core-boundary node, their outer node, their fraction along that line) of an O-grid
+    (:class:`~spinecohort.mesh.template.OGrid`) with core-boundary node ids ``cb`` in ray order."""
+    m = len(grid.outer)
+    n_core = len(grid.nodes) - grid.shell_ring * m
+    ring_ids = n_core + np.arange(grid.shell_ring * m)
+    j = np.tile(np.arange(m), grid.shell_ring)
+    start, end = cb[j], grid.outer[j]
+    span = grid.nodes[end] - grid.nodes[start]
+    frac = np.einsum("ij,ij->i", grid.nodes[ring_ids] - grid.nodes[start], span) / np.einsum("ij,ij->i", span, span)
+    return ring_ids, start, end, frac
