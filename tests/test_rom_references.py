@@ -10,15 +10,17 @@ from spinecohort.rom import references as R
 
 def test_every_file_parses_with_consistent_units():
     files = R.validation_files()
-    assert {"niosi2006.csv", "wilke2017.csv", "liebsch2020.csv", "dreischarf2014.csv"} <= set(files)
+    assert {
+        "niosi2006.csv", "wilke2017.csv", "liebsch2020.csv", "dreischarf2014.csv", "wilke1999.csv", "jaumard2011.csv"
+    } <= set(files)  # fmt: skip
     table = R.load_validation_references()
     assert list(table.columns[:7]) == list(R.TIDY_COLUMNS)
     assert set(table["file"]) == set(files)
     # one unit per quantity, the quantity's own
     assert table.groupby("quantity")["unit"].nunique().max() == 1
     assert (table["unit"] == table["quantity"].map(R.QUANTITY_UNITS)).all()
-    # pure moments in N.mm (the project's unit): 7.5 N.m, or Liebsch & Wilke's 5 N.m
-    assert set(table["moment_nmm"]) <= {7500, 5000}
+    # pure moments in N.mm (the project's unit): 7.5 N.m, or Liebsch & Wilke's 5 N.m; empty where none applies
+    assert set(table["moment_nmm"].dropna()) <= {7500, 5000}
     assert table["source"].str.len().min() > 10 and table["provenance"].notna().all()
 
 
@@ -56,3 +58,115 @@ def test_low_above_high_is_an_error():
     table = pd.DataFrame([base | {"statistic": "low", "value": 12.0}, base | {"statistic": "high", "value": 10.0}])
     with pytest.raises(ValueError, match="low > high"):
         R.check_references(table)
+
+
+# Rows per packaged source: one per published number (a mean and its SD are two rows).
+ROWS_PER_SOURCE = {
+    "Niosi et al. 2006, Eur Spine J 15:913": 16,  # Table 1: 4 motions x mean/SD x 2 preloads
+    "Liebsch & Wilke 2020, Front Bioeng Biotechnol 8:46": 12,  # 2 segments x 3 planes x 2 conditions
+    "Dreischarf et al. 2014, J Biomech 47:1757": 3,  # the abstract's three median differences
+    "Wilke et al. 1999, Spine 24:755": 12,  # the abstract's twelve pressures
+    "Jaumard et al. 2011, J Biomech Eng 133:071010": 21,  # 9 in-vitro rows x mean/SD + 3 FE values
+}
+
+
+def test_rows_per_source():
+    table = R.load_validation_references()
+    counts = table.groupby("source").size()
+    for source, rows in ROWS_PER_SOURCE.items():
+        assert counts[source] == rows, source
+
+
+def test_every_mean_has_its_sd_and_spreads_are_positive():
+    """A published mean +- SD is stored as both numbers; an SD is a spread, so never negative."""
+    wide = R.reference_wide(R.load_validation_references())
+    with_mean = wide[wide["mean"].notna() & wide["source"].isin(["Niosi et al. 2006, Eur Spine J 15:913",
+                                                                 "Jaumard et al. 2011, J Biomech Eng 133:071010"])]  # fmt: skip
+    assert with_mean["sd"].notna().all()
+    assert (wide["sd"].dropna() > 0).all()
+
+
+def test_intradiscal_pressure_in_vivo_as_read():
+    """Wilke et al. 1999 abstract, L4-L5 of one volunteer: relaxed standing 0.5 MPa, standing flexed forward
+    1.1 MPa, lying prone 0.1 MPa; lifting 20 kg with a round back 2.3 MPa, the highest value reported."""
+    idp = R.select_references(R.load_validation_references(), quantity="intradiscal_pressure")
+    assert set(idp["unit"]) == {"MPa"} and set(idp["level"]) == {"L4-L5"} and (idp["n"] == 1).all()
+    by = idp.set_index("motion")["value"]
+    assert by["standing_relaxed"] == 0.5 and by["standing_flexed_forward"] == 1.1 and by["lying_prone"] == 0.1
+    assert by.idxmax() == "lifting_20kg_round_back" and by.max() == 2.3
+    # Nachemson's ordering, which the paper confirms: lying < standing < flexed forward; overnight rehydration
+    assert by["lying_prone"] < by["standing_relaxed"] < by["standing_flexed_forward"]
+    assert by["lying_night_end"] > by["lying_night_start"]
+    assert idp["moment_nmm"].isna().all()  # in vivo: no applied moment
+
+
+def test_facet_forces_as_read():
+    """Jaumard et al. 2011 Table 2, T12-L2 in vitro: extension 51.5 +- 39.0 N; in axial rotation the
+    contralateral facet carries more than twice the ipsilateral one (70.3 vs 31.3 N): the facet on the side
+    the rotation closes is the one in contact."""
+    ff = R.select_references(R.load_validation_references(), quantity="facet_force", level="T12-L2")
+    assert set(ff["unit"]) == {"N"}
+    wide = R.reference_wide(ff).set_index(["motion", "condition"])
+    assert wide.loc[("extension", "in vitro, intact"), ["mean", "sd"]].tolist() == [51.5, 39.0]
+    ar = wide.loc["axial_rotation"]
+    contra = ar.loc["in vitro, intact, contralateral facet", "mean"]
+    ipsi = ar.loc["in vitro, intact, ipsilateral facet", "mean"]
+    assert contra > 2 * ipsi
+    assert (ff["value"] >= 0).all()  # contact forces push, never pull
+    assert ff["provenance"].str.startswith("secondary").all()
+
+
+def test_medians_inside_ranges_everywhere():
+    """Every reference with a median and a range has min <= median <= max (and low <= high)."""
+    wide = R.reference_wide(R.load_validation_references())
+    for lo, hi in (("min", "median"), ("median", "max"), ("low", "high")):
+        if lo in wide and hi in wide:
+            both = wide[[lo, hi]].dropna()
+            assert (both[lo] <= both[hi]).all()
+
+
+def test_select_references_names_unknown_columns():
+    table = R.load_validation_references()
+    assert len(R.select_references(table, source="Niosi et al. 2006, Eur Spine J 15:913", preload_n=600)) == 8
+    with pytest.raises(ValueError, match="unknown reference columns"):
+        R.select_references(table, specimen="x")
+
+
+def test_not_obtained_list_is_explicit_and_not_stale():
+    """The wanted numbers that could not be obtained are listed with where they were searched and why; none
+    of them is also in the data (a group leaves the list when its numbers arrive)."""
+    gaps = R.not_obtained()
+    table = R.load_validation_references()
+    assert R.gaps_also_obtained(table, gaps).empty
+    dreischarf = gaps[gaps["source"] == "Dreischarf et al. 2014, J Biomech 47:1757"]
+    assert set(dreischarf["quantity"]) == {"rom", "intradiscal_pressure", "facet_force"}
+    assert (gaps["source"] == "Remus et al. 2021, PLoS ONE 16:e0250456").sum() == 6
+    assert gaps["source"].str.startswith("Heuer et al. 2007").any()
+    # the staleness check fires once a group's statistics arrive
+    arrived = pd.DataFrame(
+        [
+            {
+                "level": "L4-L5",
+                "quantity": "rom",
+                "statistic": "per reduction step",
+                "source": "Heuer et al. 2007, J Biomech 40:271",
+            }
+        ]
+    )
+    assert len(R.gaps_also_obtained(arrived, gaps)) == 1
+
+
+def test_bad_gap_list_is_named():
+    gaps = R.not_obtained().copy()
+    gaps.loc[0, "reason"] = " "
+    with pytest.raises(ValueError, match="empty reason"):
+        R.check_gaps(gaps)
+    with pytest.raises(ValueError, match="unknown quantity"):
+        R.check_gaps(gaps.assign(quantity="stiffness"))
+
+
+def test_coverage_counts_both_sides():
+    cov = R.reference_coverage(R.load_validation_references(), R.not_obtained()).set_index("source")
+    assert cov.loc["Wilke et al. 1999, Spine 24:755"].tolist() == [12, 0]
+    assert cov.loc["Remus et al. 2021, PLoS ONE 16:e0250456"].tolist() == [0, 6]
+    assert cov.loc["Dreischarf et al. 2014, J Biomech 47:1757"].tolist() == [3, 4]

@@ -1,10 +1,12 @@
 """Published FE-validation reference values (``spinecohort/data/validation/*.csv``) as one tidy table.
 
 Every row is one published number: ``level`` (a segment such as ``L3-L4`` or a span such as ``L1-L5``),
-``motion`` (flexion, extension, lateral_bending, axial_rotation, flexion_extension), ``quantity``,
-``statistic`` (mean, sd, median, min, max, low, high), ``value``, ``unit`` and ``source``, with the loading
-(``moment_nmm``, ``preload_n``), ``n``, ``condition``, ``locator`` (table / figure) and ``provenance`` beside.
-The README next to the files says what was obtained from where and what was not.
+``motion`` (a loading direction such as flexion or axial_rotation; for in-vivo data the posture or activity,
+`POSTURES`), ``quantity``, ``statistic`` (`STATISTICS`; ``single`` is one measurement of one subject or one
+model's prediction), ``value``, ``unit`` and ``source``, with the loading (``moment_nmm``, ``preload_n``; empty
+where none applies or the source does not state it), ``n``, ``condition``, ``locator`` (table / figure) and
+``provenance`` beside. The README next to the files says what was obtained from where; the numbers wanted but
+not obtained are listed, one group a row, in ``gaps/not_obtained.csv`` (`not_obtained`).
 
 Quantities and their units:
 
@@ -38,8 +40,35 @@ QUANTITY_UNITS: dict[str, str] = {
     "facet_force": "N",
 }
 
-STATISTICS: frozenset[str] = frozenset({"mean", "sd", "median", "min", "max", "low", "high"})
-MOTIONS: frozenset[str] = frozenset({"flexion", "extension", "lateral_bending", "axial_rotation", "flexion_extension"})
+STATISTICS: frozenset[str] = frozenset({"mean", "sd", "median", "min", "max", "low", "high", "single"})
+LOAD_DIRECTIONS: frozenset[str] = frozenset(
+    {"flexion", "extension", "lateral_bending", "axial_rotation", "flexion_extension", "axial_compression"}
+)
+#: In-vivo postures and activities (intradiscal pressure measured in a volunteer, Wilke et al. 1999).
+POSTURES: frozenset[str] = frozenset(
+    {
+        "lying_prone",
+        "lying_lateral",
+        "lying_night_start",
+        "lying_night_end",
+        "standing_relaxed",
+        "standing_flexed_forward",
+        "sitting_unsupported",
+        "sitting_maximum_flexion",
+        "sitting_nonchalant",
+        "lifting_20kg_round_back",
+        "lifting_20kg_flexed_knees",
+        "lifting_20kg_close_to_body",
+    }
+)
+MOTIONS: frozenset[str] = LOAD_DIRECTIONS | POSTURES
+
+GAPS_FILE = "gaps/not_obtained.csv"
+#: Columns of the not-obtained list, and the quantities it may name beyond `QUANTITY_UNITS`.
+GAP_COLUMNS: tuple[str, ...] = (
+    "source", "quantity", "levels", "motions", "statistics", "loading", "wanted_from", "searched", "reason"
+)  # fmt: skip
+GAP_QUANTITIES: frozenset[str] = frozenset(QUANTITY_UNITS) | {"mesh_convergence", "calibration_target"}
 
 #: Pairs (lower, upper) of statistics that must be ordered within one reference.
 _ORDERED = (("low", "high"), ("min", "median"), ("median", "max"), ("min", "max"))
@@ -111,5 +140,64 @@ def reference_wide(table: pd.DataFrame) -> pd.DataFrame:
 
 def _pivot(table: pd.DataFrame, key: list[str]) -> pd.DataFrame:
     """Statistics as columns, one row per key; an empty key cell is a key of its own (not a dropped row)."""
-    filled = table.assign(**{k: table[k].fillna("") for k in key})
+    filled = table.assign(**{k: table[k].astype(object).fillna("") for k in key})
     return filled.pivot_table(index=key, columns="statistic", values="value", aggfunc="first")
+
+
+def select_references(table: pd.DataFrame, **criteria: str | float) -> pd.DataFrame:
+    """The rows of `table` whose columns equal every given value, e.g. ``quantity="facet_force",
+    level="T12-L2"``; an unknown column is an error naming it."""
+    unknown = sorted(set(criteria) - set(table.columns))
+    if unknown:
+        raise ValueError(f"unknown reference columns {unknown}; columns: {list(table.columns)}")
+    mask = np.ones(len(table), dtype=bool)
+    for col, value in criteria.items():
+        mask &= (table[col] == value).to_numpy()
+    return table[mask]
+
+
+def not_obtained() -> pd.DataFrame:
+    """The published numbers wanted for the FE validation that could not be obtained (one group a row: source,
+    quantity, levels and motions as ``;``-separated lists, statistics, loading, where in the source they are,
+    where it was searched and why they are missing)."""
+    with resources.files("spinecohort").joinpath(f"{VALIDATION_DIR}/{GAPS_FILE}").open("r", encoding="utf-8") as fh:
+        gaps = pd.read_csv(fh, comment="#", keep_default_na=False, dtype=str)
+    check_gaps(gaps)
+    return gaps
+
+
+def check_gaps(gaps: pd.DataFrame) -> None:
+    """Raise ValueError naming the first problem of a not-obtained list: a missing column, an unknown quantity
+    or an empty source, searched or reason cell (a gap must say where it was looked for and why it is one)."""
+    missing = [c for c in GAP_COLUMNS if c not in gaps.columns]
+    if missing:
+        raise ValueError(f"{GAPS_FILE}: missing columns {missing}")
+    bad = sorted(set(gaps["quantity"]) - GAP_QUANTITIES)
+    if bad:
+        raise ValueError(f"{GAPS_FILE}: unknown quantity {bad}; allowed: {sorted(GAP_QUANTITIES)}")
+    for col in ("source", "searched", "reason"):
+        empty = np.flatnonzero(gaps[col].str.strip() == "")
+        if len(empty):
+            raise ValueError(f"{GAPS_FILE}: empty {col} in rows {empty.tolist()}")
+
+
+def gaps_also_obtained(table: pd.DataFrame, gaps: pd.DataFrame) -> pd.DataFrame:
+    """The gap rows that the reference `table` already covers: same source and quantity, and at one of the
+    gap's levels every one of the gap's statistics present. Such a gap is stale and must leave the list once
+    its numbers are in a validation CSV."""
+    have = table.groupby(["source", "quantity", "level"])["statistic"].agg(set).to_dict()
+    covered = [
+        any(set(stats.split(";")) <= have.get((src, qty, lv.strip()), set()) for lv in levels.split(";"))
+        for src, qty, levels, stats in zip(gaps["source"], gaps["quantity"], gaps["levels"], gaps["statistics"])
+    ]
+    return gaps[np.asarray(covered, dtype=bool)]
+
+
+def reference_coverage(table: pd.DataFrame, gaps: pd.DataFrame) -> pd.DataFrame:
+    """Per source: numbers obtained (rows of `table`) and groups not obtained (rows of `gaps`), sorted by source;
+    the summary the validation report and docs state."""
+    got = table.groupby("source").size().rename("numbers_obtained")
+    lost = gaps.groupby("source").size().rename("groups_not_obtained")
+    out = pd.concat([got, lost], axis=1).fillna(0).astype(int)
+    out.index.name = "source"
+    return out.sort_index().reset_index()
