@@ -19,19 +19,24 @@ Steps (the data README lists them with the numbers this script prints):
    (x = -Y, y = X, z = Z; +Y is the patient's left: the ``PDl`` (left) facet patches lie at +Y).
 2. myo-sim thoracic meshes T1-T12, lumbar1 and femurs placed by their MuJoCo bodies
    (``scene/myobody_skeleton_decor.xml``); OpenSim frame (+X anterior, +Y up, +Z right) -> RAS axes, mm.
-3. Thoracic levels: the isotropically remeshed Remus L1 is warped onto each myo-sim thoracic mesh by a
-   thin-plate spline through 15 landmarks found by the same geometric rules on both (8 corners of the
-   vertebral-body box, spinous tip, transverse-process tips, superior/inferior articular-process tips;
-   :func:`spinecohort.anatomy.landmark_rules.vertebra_landmarks`), in each mesh's own frame.  The warped
-   level is then placed by the myo-sim posture carried onto the Remus column: the similarity that takes
-   myo-sim lumbar1's landmarks onto Remus L1's.  Each thoracic vertebra keeps the myo-sim size times
-   ``--thoracic-scale`` about its own centre (so that T12's body width matches Panjabi 1991's 39.2 mm).
+3. Thoracic levels: the Remus L1 remeshed at ``--edge-thoracic-template`` mm (the thoracic template, labeled by
+   the same rules as L1) is moved onto each level by a smooth map in its body frame
+   (:mod:`spinecohort.anatomy.level_map`): the body scaled to the level's published endplate width and depth
+   and wedged to its anterior and posterior heights (:data:`BODY_ANCHORS`; each scale corrected three times by
+   the measured / asked ratio of :mod:`spinecohort.anatomy.morphometry`), the posterior elements scaled by
+   :data:`ARCH_ANCHORS` and by the height of a motion segment, the articular processes turned towards the
+   coronal plane (:data:`FACET_TARGET_DEG`; a turn that would fold the surface is damped in quarter steps),
+   the spinous process turned and stretched onto the myo-sim level's spinous tip.  Every level keeps the
+   template's vertex order and triangles, so the template's labels hold by index.  The level is placed by the
+   myo-sim posture carried onto the Remus column: its body centre and axes are those of the myo-sim level
+   under the similarity that takes myo-sim lumbar1's landmarks onto Remus L1's.
 4. Femoral heads: the myo-sim femurs cut 45 mm below the head centre, smoothed (Loop subdivision) and
    placed with the head centre at the centre of the sphere fitted to the Remus acetabulum, scaled so the
    head radius is the acetabular radius minus ``--joint-space`` (cartilage gap); the head cap is then
    projected exactly onto that sphere.
 5. Isotropic remeshing (ACVD) at ``--edge-vertebra`` / ``--edge-sacrum`` / ``--edge-pelvis`` /
-   ``--edge-femur`` mm; every part checked closed, manifold and free of self-intersections.
+   ``--edge-femur`` mm; the thoracic disc spaces set to ``--min-disc-mm`` (closest body-to-body distance),
+   every overlapping joint separated; every part checked closed, manifold and free of self-intersections.
 6. Labels and landmarks (:mod:`spinecohort.anatomy.labeling`) and the npz write.
 """
 
@@ -42,6 +47,7 @@ import json
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,9 +55,12 @@ import pyvista as pv
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from spinecohort.anatomy.assemble import BODY_TOLERANCE_MM, assemble, inside_or_near
+from spinecohort.anatomy import morphometry as M
+from spinecohort.anatomy.assemble import BODY_TOLERANCE_MM, assemble, inside_or_near, label_vertebra
 from spinecohort.anatomy.contacts import open_disc_spaces, push_out
+from spinecohort.anatomy.labels import VERTEBRA_REGIONS, region_id
 from spinecohort.anatomy.landmark_rules import similarity_from_points, vertebra_landmarks
+from spinecohort.anatomy.level_map import LevelShape, Template, map_vertebra
 from spinecohort.anatomy.reference import save_reference
 from spinecohort.anatomy.surface import (
     check_surface,
@@ -61,7 +70,6 @@ from spinecohort.anatomy.surface import (
     self_intersections,
     sphere_fit,
     to_polydata,
-    tps_warp,
 )
 
 REMUS_DIR = "hybrid_LSS_model/src/artisynth/models/passiveComponents_PlosOne/geometry/RB"
@@ -120,40 +128,148 @@ def myo_mesh(models: str, name: str, placement=None) -> tuple[np.ndarray, np.nda
     return 1000.0 * v @ OSIM_TO_RAS.T, f
 
 
-def thoracic_levels(args, l1_v, l1_f, log):
-    """T1..T12: the remeshed Remus L1 warped onto each myo-sim level, placed on the Remus column and
-    remeshed; also the warped L1 vertices of each level (the carriers of L1's labels)."""
+#: Published thoracic body dimensions the levels are built to (mm), as (level index k of Tk, value) anchors
+#: interpolated linearly in k and held constant beyond the end anchors; every value is a row of
+#: ``spinecohort/data/morphometry/panjabi.csv`` (its provenance there).
+#: posterior body height: Panjabi 1991 text ("from 14.3 mm at T1 to 22.7 mm at T12", a steady rise);
+#: anterior / posterior height ratio: Egwu 2019 T2 and T9, Kunkel 2011 T12; width: the mean of typical (T2-T9)
+#: thoracic vertebrae placed at T5.5 (Indian dry bones, 200 vertebrae) and Panjabi 1991 Fig. 4A T11, T12;
+#: depth: the same typical-thoracic mean, and at T12 the myo-sim T12 body box at the width scale.
+BODY_ANCHORS = {
+    "height_posterior": ((1.0, 14.3), (12.0, 22.7)),
+    "height_ratio": ((2.0, 16.93 / 17.59), (9.0, 18.83 / 20.46), (12.0, 20.8 / 23.12)),
+    "width": ((5.5, 27.02), (11.0, 35.2), (12.0, 39.2)),
+    "depth": ((5.5, 20.78),),
+}
+#: Transverse scale of the posterior elements (canal, pedicle spacing) against L1: Panjabi's spinal canal
+#: width of T11 and T12 over L1's (1991 Table 4, 1992), held constant above T11.
+ARCH_ANCHORS = ((11.0, 19.4 / 23.7), (12.0, 22.2 / 23.7))
+#: Superior-facet transverse angle (deg to the mid-sagittal plane) the articular processes are turned to:
+#: the middle of Masharawi 2004's ranges, T1-T11 60-65 (coronal), T12 26-34 (the transition to sagittal).
+FACET_TARGET_DEG = {**{f"T{k}": 62.5 for k in range(1, 12)}, "T12": 30.0}
+
+
+def _interp(anchors, k: float) -> float:
+    xs, ys = zip(*anchors)
+    return float(np.interp(k, xs, ys))
+
+
+def thoracic_template(tv, tf, t_body) -> tuple[Template, dict]:
+    """The thoracic template (the remeshed Remus L1) in its morphometry frame (x right, y anterior, z
+    superior), with its labels by the lumbar rules (:func:`spinecohort.anatomy.assemble.label_vertebra`)."""
+    lab = label_vertebra(tv, tf, t_body)
+    regions = {n: np.flatnonzero(lab["region"] == region_id(n)) for n in VERTEBRA_REGIONS}
+    sup, inf = lab["rim_band_sup"], lab["rim_band_inf"]
+    frame = M.vertebra_frame(tv, sup, inf, regions["body"], M.canal_centre(tv, regions))
+    q = frame.local(tv)
+    dims = M.body_dimensions(q, regions["body"], sup, inf)
+    loc = q[:, [1, 0, 2]]
+    body = regions["body"]
+    mid = body[(np.abs(loc[body, 0]) < 4.0) & (np.abs(loc[body, 2]) < 8.0)]
+    t = Template(
+        loc,
+        dims["endplate_width_upper"],
+        dims["endplate_depth_upper"],
+        dims["body_height_anterior"],
+        dims["body_height_posterior"],
+        float(loc[body, 1].max()),
+        float(loc[mid, 1].min()),
+        regions,
+    )
+    return t, {"frame": frame, "sup": sup, "inf": inf, "faces": tf}
+
+
+def measure_local(t: Template, loc: np.ndarray, info: dict) -> dict:
+    """Morphometry of a moved template given in the template's local axes."""
+    parts = {k: v for k, v in t.regions.items() if len(v)}
+    return M.measure_vertebra(loc[:, [1, 0, 2]], info["faces"], parts, info["sup"], info["inf"])
+
+
+def fit_scales(t: Template, shape: LevelShape, info: dict, rounds: int = 3) -> LevelShape:
+    """``shape`` with its body dimensions corrected ``rounds`` times by the ratio of the asked to the measured
+    value (:mod:`spinecohort.anatomy.morphometry` on the mapped template), so the mapped level measures them."""
+    want = {
+        "endplate_width_upper": shape.width_mm,
+        "endplate_depth_upper": shape.depth_mm,
+        "body_height_anterior": shape.height_anterior_mm,
+        "body_height_posterior": shape.height_posterior_mm,
+    }
+    names = ("width_mm", "depth_mm", "height_anterior_mm", "height_posterior_mm")
+    asked = shape
+    for _ in range(rounds):
+        m = measure_local(t, map_vertebra(t, asked), info)
+        asked = replace(asked, **{n: getattr(asked, n) * want[q] / m[q] for n, q in zip(names, want)})
+    return asked
+
+
+def thoracic_levels(args, tv, tf, t_body, l1_disc_mm, log):
+    """T1..T12: the thoracic template (``tv``, ``tf``, body mask ``t_body``; the Remus L1 remeshed, in L1's
+    place) moved by a per-level map (:mod:`spinecohort.anatomy.level_map`) to the published body dimensions,
+    thoracic facet orientation and the myo-sim spinous process, then placed by the myo-sim posture carried
+    onto the Remus column.  Every level keeps the template's vertex order and triangles.  ``l1_disc_mm``: the
+    closest body-to-body distance L1-L2 of Remus."""
     place = myo_placements(args.myo_models)
-    src = vertebra_landmarks(l1_v)
+    t, info = thoracic_template(tv, tf, t_body)
+    src = vertebra_landmarks(tv)
     # the myo-sim posture carried onto Remus: similarity from myo lumbar1 (placed) to Remus L1
     lum_raw, _ = myo_mesh(args.myo_models, "lumbar1")
     lum_placed, _ = myo_mesh(args.myo_models, "lumbar1", place["lumbar1"])
     rl, _, tl = similarity_from_points(lum_raw, lum_placed, with_scale=False)  # same vertices: exact
     rot, scale, trans = similarity_from_points(vertebra_landmarks(lum_raw) @ rl.T + tl, src)
     log["myo_to_remus_scale"] = scale
-    out, carriers = {}, {}
+    raws = {k: myo_mesh(args.myo_models, f"thoracic{k}_s")[0] for k in range(1, 13)}
+    lmks = {k: vertebra_landmarks(raws[k]) for k in range(1, 13)}
+    size = args.t12_body_width_mm / np.ptp(lmks[12][:8, 0])
+    centres, rots = {}, {}
     for k in range(1, 13):
         name = f"thoracic{k}_s"
-        raw, _ = myo_mesh(args.myo_models, name)
         placed, _ = myo_mesh(args.myo_models, name, place[name])
-        tgt_raw = vertebra_landmarks(raw)
-        # an interpolating spline folds the surface where the rules' landmarks of the coarse myo-sim mesh
-        # disagree (T1, T2): smooth it until the warped surface has no self-intersection
-        for smoothing in (0.0, 3.0, 10.0, 30.0, 100.0, 300.0):
-            warped = tps_warp(src, tgt_raw, smoothing=smoothing)(l1_v)
-            if self_intersections(warped, l1_f) == 0:
+        rk, _, tk = similarity_from_points(raws[k], placed, with_scale=False)
+        c_raw = 0.5 * (lmks[k][:8].min(0) + lmks[k][:8].max(0))  # body-box centre
+        centres[k] = scale * (c_raw @ rk.T + tk) @ rot.T + trans
+        rots[k] = rot @ rk
+    depth_t12 = float(np.ptp(lmks[12][:8, 1]) * size)
+    out, fits, turns = {}, {}, {}
+    for k in range(1, 13):
+        hp = _interp(BODY_ANCHORS["height_posterior"], k)
+        arch_xy = _interp(ARCH_ANCHORS, k)
+        # the arch spans a motion segment: its height follows the body height plus the disc (L1's: its
+        # posterior height and its closest gap to L2)
+        arch_z = (hp + args.min_disc_mm) / (t.height_posterior_mm + l1_disc_mm)
+        c_box = 0.5 * (lmks[k][:8].min(0) + lmks[k][:8].max(0))
+        tip = (lmks[k][8] - c_box) * size
+        shape = LevelShape(
+            width_mm=_interp(BODY_ANCHORS["width"], k),
+            depth_mm=_interp(BODY_ANCHORS["depth"] + ((12.0, depth_t12),), k),
+            height_anterior_mm=hp * _interp(BODY_ANCHORS["height_ratio"], k),
+            height_posterior_mm=hp,
+            arch_xyz=(arch_xy, arch_xy, arch_z),
+            spinous_tip=(0.0, float(tip[1]), float(tip[2])),
+        )
+        fits[k] = shape
+        unturned = measure_local(t, map_vertebra(t, replace(shape, spinous_tip=None)), info)
+        turns[k] = FACET_TARGET_DEG[f"T{k}"] - unturned["facet_sup_transverse"]
+    # one turn for the thoracic joints T1-T2 ... T11-T12 (their mean), so that both processes of T1-T10 turn
+    # alike; each inferior process turns with its partner, the superior process of the level below
+    turn = float(np.mean([turns[k] for k in range(1, 12)]))
+    sup = {**{k: turn for k in range(1, 12)}, 12: turns[12]}
+    for k in range(1, 13):
+        turned = replace(fits[k], facet_sup_deg=sup[k], facet_inf_deg=sup[k + 1] if k < 12 else 0.0)
+        for damp in (1.0, 0.75, 0.5, 0.25, 0.0):
+            trial = replace(
+                turned, facet_sup_deg=damp * turned.facet_sup_deg, facet_inf_deg=damp * turned.facet_inf_deg
+            )
+            if self_intersections(map_vertebra(t, trial), tf) == 0:
                 break
-        log.setdefault("thoracic_tps_smoothing", {})[f"T{k}"] = smoothing
-        # raw -> placed is rigid (R_k, t_k); fit it from the landmark vertices, then the similarity to Remus
-        rk, _, tk = similarity_from_points(raw, placed, with_scale=False)
-        centre = 0.5 * (tgt_raw[:8].min(0) + tgt_raw[:8].max(0))  # body-box centre
-        size = args.t12_body_width_mm / np.ptp(vertebra_landmarks(myo_mesh(args.myo_models, "thoracic12_s")[0])[:8, 0])
-        local = centre + (size / scale) * (warped - centre)  # the shape at `size` x myo-sim after the similarity
-        world = scale * (local @ rk.T + tk) @ rot.T + trans
-        log["thoracic_size_factor"] = size
-        carriers[f"T{k}"] = world
-        out[f"T{k}"] = remesh_isotropic(world, l1_f, args.edge_vertebra)
-    return out, carriers
+        trial = fit_scales(t, trial, info)
+        loc = map_vertebra(t, trial)
+        if self_intersections(loc, tf):
+            raise RuntimeError(f"T{k}: the fitted map folds the surface")
+        log.setdefault("thoracic_shapes", {})[f"T{k}"] = {**asdict(trial), "facet_damping": damp}
+        world = centres[k] + loc @ rots[k].T  # local axes = the myo-sim level's upright body axes
+        out[f"T{k}"] = (world, tf.copy())
+    log["thoracic_size_factor"] = size
+    return out
 
 
 def acetabulum_centre(points: np.ndarray, normals: np.ndarray, side: float) -> tuple[np.ndarray, float]:
@@ -239,20 +355,19 @@ def separate_pair(
                 mesh += gap_mm * axis
 
 
-def separate_bones(args, parts: dict, carriers: dict, bodies: dict, facets: dict, log: dict) -> None:
-    """Open the thoracic disc spaces, then push every overlapping articular surface out of its partner
-    (:mod:`spinecohort.anatomy.contacts`); parts and carriers are updated in place."""
+def separate_bones(args, parts: dict, t_body: np.ndarray, bodies: dict, facets: dict, log: dict) -> None:
+    """Close or open the thoracic disc spaces to ``--min-disc-mm``, then push every overlapping articular
+    surface out of its partner (:mod:`spinecohort.anatomy.contacts`); parts are updated in place.
+    ``t_body``: the body mask of the thoracic template (every thoracic level's vertex set)."""
     l1_body = inside_or_near(parts["L1"][0], *bodies["L1"], BODY_TOLERANCE_MM)
     column = [f"T{k}" for k in range(1, 13)] + ["L1"]
-    masks = [l1_body[cKDTree(carriers[lv]).query(parts[lv][0])[1]] for lv in column[:-1]] + [l1_body]
+    masks = [t_body] * 12 + [l1_body]
     pts = [parts[lv][0].copy() for lv in column]
-    before = [p[0].copy() for p in pts]
-    log["thoracic_min_body_gap_mm"] = open_disc_spaces(pts, masks, args.min_disc_mm)
-    for lv, p, b in zip(column, pts, before):
-        carriers.get(lv, p)[:] += p[0] - b  # the same translation for the label carrier
+    log["thoracic_min_body_gap_mm"] = open_disc_spaces(pts, masks, args.min_disc_mm, close=True)
+    for lv, p in zip(column, pts):
         parts[lv] = (p, parts[lv][1])
     names = column + ["L2", "L3", "L4", "L5", "S1"]
-    followers = {lv: [carriers[lv]] for lv in carriers}
+    followers: dict[str, list] = {}
     for lv in names[12:]:
         followers[lv] = [bodies[lv][0]] + [facets[f"{lv}_{s}"][0] for s in ("left", "right") if f"{lv}_{s}" in facets]
     moved = {}
@@ -301,14 +416,22 @@ def parse_args(argv=None):
     ap.add_argument("--myo-models", required=True, help="myo_sim/models of the unpacked myo-sim 0.2.4 wheel")
     ap.add_argument("--out", default="src/spinecohort/data/reference/reference_spine.npz")
     ap.add_argument("--edge-vertebra", type=float, default=2.2, help="target edge length on the vertebrae, mm")
+    ap.add_argument(
+        "--edge-thoracic-template", type=float, default=2.6, help="edge of the Remus L1 remesh the T levels map, mm"
+    )
     ap.add_argument("--edge-sacrum", type=float, default=3.5)
     ap.add_argument("--edge-pelvis", type=float, default=5.0)
     ap.add_argument("--edge-femur", type=float, default=3.0)
-    ap.add_argument("--t12-body-width-mm", type=float, default=39.2, help="Panjabi 1991 T12 endplate width")
+    ap.add_argument(
+        "--t12-body-width-mm",
+        type=float,
+        default=39.2,
+        help="Panjabi 1991 T12 endplate width: the size of the myo-sim spinous tips and T12 depth",
+    )
     ap.add_argument("--joint-space-mm", type=float, default=2.5, help="acetabular radius - head radius")
     ap.add_argument("--femur-cut-mm", type=float, default=45.0)
     ap.add_argument("--min-disc-mm", type=float, default=3.0, help="closest body-to-body distance, thoracic")
-    ap.add_argument("--max-push-thoracic", type=int, default=40, help="most vertices a push moves at a T joint")
+    ap.add_argument("--max-push-thoracic", type=int, default=400, help="most vertices a push moves at a T joint")
     ap.add_argument("--joint-gap-mm", type=float, default=0.5, help="clearance of pushed-apart joint surfaces")
     return ap.parse_args(argv)
 
@@ -328,8 +451,15 @@ def main(argv=None) -> int:
         for lv in ("L2", "L3", "L4", "L5", "S1")
         for s in ("left", "right")
     }
-    thoracic, carriers = thoracic_levels(args, *parts["L1"], log)
-    parts.update(thoracic)
+    v, f = remus_mesh(args.remus_git, "L1_Schrumpfverpacken")
+    template = remesh_isotropic(v, f, args.edge_thoracic_template)
+    t_body = inside_or_near(template[0], *bodies["L1"], BODY_TOLERANCE_MM)
+    l1_l2 = [
+        p[0][inside_or_near(p[0], *bodies[lv], BODY_TOLERANCE_MM)]
+        for lv, p in (("L1", parts["L1"]), ("L2", parts["L2"]))
+    ]
+    log["l1_l2_min_body_gap_mm"] = float(cKDTree(l1_l2[1]).query(l1_l2[0])[0].min())
+    parts.update(thoracic_levels(args, *template, t_body, log["l1_l2_min_body_gap_mm"], log))
     v, f = remus_mesh(args.remus_git, "S1_Schrumpfverpacken")
     parts["S1"] = remesh_isotropic(v, f, args.edge_sacrum)
     v, f = remus_mesh(args.remus_git, "Pelvis")
@@ -344,14 +474,14 @@ def main(argv=None) -> int:
         hv, hf, cap = femoral_head(args, side, c, r - args.joint_space_mm, log)
         parts[f"femur_{side}"] = (hv, hf)
         heads[side] = cap
-    separate_bones(args, parts, carriers, bodies, facets, log)
+    separate_bones(args, parts, t_body, bodies, facets, log)
     log["checks"] = {k: check_surface(*vf) for k, vf in parts.items()}
     for k, c in log["checks"].items():
         print(f"{k:9s}", json.dumps(c), flush=True)
     log["pairs"] = pair_checks(parts)
     for k, c in log["pairs"].items():
         print(f"{k:16s}", json.dumps(c), flush=True)
-    ref = assemble(parts, carriers, bodies, facets, heads, log)
+    ref = assemble(parts, (*template, t_body), bodies, facets, heads, log)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_reference(ref, out)

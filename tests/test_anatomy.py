@@ -15,7 +15,6 @@ from spinecohort.anatomy.surface import (
     remesh_isotropic,
     self_intersections,
     sphere_fit,
-    tps_warp,
 )
 from spinecohort.cohort.landmarks import LEVELS
 
@@ -65,17 +64,6 @@ def test_sphere_fit_and_similarity_recover_known_values():
     src = rng.normal(size=(15, 3)) * 20
     rot, s, t = similarity_from_points(src, 1.3 * src @ q.T + [5.0, 6.0, 7.0])
     assert np.allclose(rot, q, atol=1e-9) and s == pytest.approx(1.3) and np.allclose(t, [5, 6, 7])
-
-
-def test_thin_plate_spline_interpolates_its_landmarks_and_keeps_affine_maps():
-    rng = np.random.default_rng(1)
-    src = rng.normal(size=(15, 3)) * 20
-    dst = src + rng.normal(size=(15, 3)) * 3
-    assert np.allclose(tps_warp(src, dst)(src), dst, atol=1e-6)
-    a = np.array([[1.1, 0.1, 0.0], [0.0, 0.9, 0.2], [0.0, 0.0, 1.0]])
-    probe = rng.normal(size=(50, 3)) * 10
-    # an affine landmark map is reproduced exactly everywhere (the spline's polynomial part)
-    assert np.allclose(tps_warp(src, src @ a.T + 2.0)(probe), probe @ a.T + 2.0, atol=1e-6)
 
 
 def test_push_out_separates_overlapping_bones_to_the_clearance():

@@ -2,8 +2,10 @@
 
 Order of the parts in the single surface: T1..T12, L1..L5, sacrum (``S1``), hip bones (``pelvis``), left and
 right proximal femurs.  L1-L5 are labeled by :mod:`spinecohort.anatomy.labeling` in their own body frame;
-T1-T12 are the warped Remus L1, remeshed, and take L1's region labels by nearest vertex of the warped L1;
-their endplates, anchors and ligament sites follow by the same rules in their own body frame.
+T1-T12 are the vertex set of one thoracic template (the Remus L1 remeshed coarser, labeled by the same rules
+as L1) moved by :func:`spinecohort.anatomy.level_map.map_vertebra`, so the template's region labels, endplate
+patches and rims, anchors and ligament sites hold on every thoracic level by index
+(:func:`carried_from_template`).
 """
 
 from __future__ import annotations
@@ -50,22 +52,16 @@ def _nearest(points: np.ndarray, idx: np.ndarray, target: np.ndarray) -> int:
     return int(idx[np.argmin(np.linalg.norm(points[idx] - target, axis=1))])
 
 
-def label_vertebra(points, faces, is_body, region=None, landmarks_world=None) -> dict:
-    """Regions, endplates, anchors and ligament sites of one vertebra (indices local to it).
-
-    Without ``region`` the posterior regions follow from the landmark rules in the body frame (the Remus
-    lumbar vertebrae); with it (labels carried from L1 to a thoracic level) the landmark points must be given.
-    """
+def label_vertebra(points, faces, is_body) -> dict:
+    """Regions, endplates, anchors and ligament sites of one vertebra (indices local to it): the posterior
+    regions follow from the landmark rules in the body frame."""
     normals = labeling.vertex_normals(points, faces)
     frame = body_frame(points, normals, is_body)
     centre = points[is_body].mean(0)
     loc = (points - centre) @ frame.T
     nloc = normals @ frame.T
-    if region is None:
-        lmk = vertebra_landmarks(loc)
-        region = labeling.posterior_regions(loc, is_body, lmk)
-    else:
-        lmk = (landmarks_world - centre) @ frame.T
+    lmk = vertebra_landmarks(loc)
+    region = labeling.posterior_regions(loc, is_body, lmk)
     out = {"region": region, "frame": frame, "centre": centre, "landmarks": lmk @ frame + centre}
     out.update(labeling.endplates(loc, nloc, faces, is_body))
     out.update(_sites(loc, nloc, region, lmk, out))
@@ -161,9 +157,27 @@ def _close_to(points, idx, partner, partner_points=None, within_mm: float = 4.0)
     return near if len(near) >= 5 else idx[d <= np.quantile(d, 0.3)]
 
 
-def assemble(parts: dict, carriers: dict, bodies: dict, facets: dict, heads: dict, log: dict) -> Reference:
-    """The Reference of the remeshed parts (see the module docstring for the order); ``carriers``: level ->
-    the warped L1 vertices (L1's vertex order) each thoracic level was remeshed from."""
+def carried_from_template(tpl: dict, tpl_part: tuple, part: tuple, name: str) -> dict:
+    """The labels of a thoracic level that is the template's vertex set moved (same count and order, same
+    triangles): the template's regions, endplate sets, anchors and sites by index; its frame and centre from
+    its own body vertices, its landmarks at the moved positions of the vertices nearest the template's."""
+    points, faces = part
+    if len(points) != len(tpl_part[0]) or not np.array_equal(faces, tpl_part[1]):
+        raise ValueError(
+            f"{name}: not the thoracic template's vertex set and triangles ({len(points)} vs {len(tpl_part[0])})"
+        )
+    is_body = tpl["region"] == region_id("body")
+    frame = body_frame(points, labeling.vertex_normals(points, faces), is_body)
+    lmk_vertices = cKDTree(tpl_part[0]).query(tpl["landmarks"])[1]
+    out = dict(tpl)
+    out.update({"frame": frame, "centre": points[is_body].mean(0), "landmarks": points[lmk_vertices]})
+    return out
+
+
+def assemble(parts: dict, template: tuple, bodies: dict, facets: dict, heads: dict, log: dict) -> Reference:
+    """The Reference of the parts (see the module docstring for the order); every thoracic part is the
+    vertex set and triangles of ``template`` (points, faces, body mask: the thoracic template the levels were
+    mapped from, labeled here by the lumbar rules), moved."""
     order = list(LEVELS) + ["S1", "pelvis", "femur_L", "femur_R"]
     offsets, start = {}, 0
     for k in order:
@@ -179,15 +193,9 @@ def assemble(parts: dict, carriers: dict, bodies: dict, facets: dict, heads: dic
     vert = {
         lv: label_vertebra(*parts[lv], inside_or_near(parts[lv][0], *bodies[lv], BODY_TOLERANCE_MM)) for lv in LUMBAR
     }
-    l1_points = parts["L1"][0]
-    l1_lmk_vertices = cKDTree(l1_points).query(vert["L1"]["landmarks"])[1]
+    tpl = label_vertebra(*template)
     for lv in THORACIC:
-        # labels of the warped L1 (``carriers[lv]``, L1's vertex order) carried to the remeshed level by
-        # nearest vertex; its landmarks are the warped positions of L1's landmark vertices
-        carrier = carriers[lv]
-        region_t = vert["L1"]["region"][cKDTree(carrier).query(parts[lv][0])[1]]
-        is_body = region_t == region_id("body")
-        vert[lv] = label_vertebra(*parts[lv], is_body, region_t, carrier[l1_lmk_vertices])
+        vert[lv] = carried_from_template(tpl, template[:2], parts[lv], lv)
     lm_sets: dict[str, dict] = {k: {} for k in ("endplate_sup", "endplate_inf", "rim_sup", "rim_inf", "body")}
     anchors: dict[str, list] = {}
     sites: dict[str, dict] = {}

@@ -6,7 +6,8 @@ overlap by up to a few millimetres (the ArtiSynth model handles those contacts i
 thoracic levels can overlap at the bodies.  Two steps remove every overlap:
 
 1. :func:`open_disc_spaces`: from T12 upwards, each thoracic level and all above it are translated along the
-   line joining the two body centres until the closest body-to-body distance is ``min_disc_mm``;
+   line joining the two body centres until the closest body-to-body distance is ``min_disc_mm`` (the build
+   also closes wider spaces to it);
 2. :func:`push_out`: the vertices of one bone that lie inside another, or closer than ``gap_mm`` to it, are
    moved to the other's surface plus ``gap_mm`` along the outward direction (the closest point of the fixed
    bone), repeated until the two surfaces no longer intersect: the moving articular surface becomes
@@ -22,26 +23,31 @@ from scipy.spatial import cKDTree
 from spinecohort.anatomy.surface import intersections_between, to_polydata
 
 
-def open_disc_spaces(points: list[np.ndarray], body: list[np.ndarray], min_disc_mm: float) -> list[float]:
-    """Translate levels in place so that consecutive bodies are ``min_disc_mm`` apart at their closest.
+def open_disc_spaces(
+    points: list[np.ndarray], body: list[np.ndarray], min_disc_mm: float, close: bool = False
+) -> list[float]:
+    """Translate levels in place so that consecutive bodies are ``min_disc_mm`` apart at their closest (with
+    ``close`` also moving bodies farther apart than that towards each other).
 
     points: vertebrae cranial to caudal, each (N_i, 3) mm (modified in place; the caudal-most one stays);
-    body: their body-vertex masks.  Returns the shift of every level boundary (mm), cranial to caudal."""
+    body: their body-vertex masks.  Returns the closest body-to-body distance of every joint (mm), cranial
+    to caudal."""
+    lowest = -np.inf if close else 0.0
     shifts = []
     for k in range(len(points) - 2, -1, -1):
         upper, lower = points[k][body[k]], points[k + 1][body[k + 1]]
         gap = float(cKDTree(lower).query(upper)[0].min())
         axis = upper.mean(0) - lower.mean(0)
         axis /= np.linalg.norm(axis)
-        shift = max(0.0, min_disc_mm - gap)
-        # the closest distance grows by at most the shift: iterate the few times it takes
+        shift = max(lowest, min_disc_mm - gap)
+        # the closest distance changes by at most the shift: iterate the few times it takes
         for _ in range(5):
-            if shift <= 0:
+            if abs(shift) < 1e-3:
                 break
             for j in range(k + 1):
                 points[j] += shift * axis
             gap = float(cKDTree(lower).query(points[k][body[k]])[0].min())
-            shift = max(0.0, min_disc_mm - gap)
+            shift = max(lowest, min_disc_mm - gap)
         shifts.append(gap)
     return shifts[::-1]
 

@@ -29,24 +29,47 @@ PAGE = Path("docs/explanation/anatomy.md")
 REASONS: dict[str, tuple[tuple[str, ...], str]] = {
     "body_height_posterior": (
         ("T12", "L1", "L2"),
-        "T12: the thoracic bodies are Remus L1 warped onto the MyoSuite thoracic shapes, which leaves T12 much "
-        "taller behind than in front; L1, L2: this donor's tall lumbar bodies, measured on the whole-vertebra "
+        "T12: built to Panjabi 1991's 22.7 mm (inside Kunkel 2011's interval); Busscher 2010's six male CT "
+        "spines are taller; L1, L2: this donor's tall lumbar bodies, measured on the whole-vertebra "
         "surfaces, which lie up to 2 mm outside the body-only surfaces of the same donor on the endplates "
         "(`anatomy.assemble.BODY_TOLERANCE_MM`); Busscher's CT heights hold them",
     ),
-    "body_height_anterior": (("L5",), "the donor's strongly wedged L5, measured on the whole-vertebra surface"),
+    "body_height_anterior": (
+        ("T12", "L5"),
+        "T12: built to Panjabi 1991's posterior height times Kunkel 2011's anterior/posterior ratio (inside "
+        "Kunkel's interval), below Busscher 2010's six male CT spines; L5: the donor's strongly wedged L5, "
+        "measured on the whole-vertebra surface",
+    ),
+    "endplate_width_upper": (
+        ("T9",),
+        "the widths are interpolated from the typical-thoracic mean (placed at T5.5) to Panjabi 1991's T11; "
+        "T9 is the widest level the pooled T2-T9 interval covers",
+    ),
     "canal_depth": (
-        ("T11", "T12", "L1", "L2", "L3", "L5"),
+        ("T11", "T12", "L1", "L3", "L5"),
         "a narrow canal in this reference (below Panjabi's mean at every level): the Remus "
         "whole-vertebra surfaces lie outside the body-only ones (see the heights), and an outward offset "
-        "narrows a hole by twice its size; T11 and T12 keep L1's canal, scaled down by the warp",
+        "narrows a hole by twice its size; T11 and T12 keep L1's canal depth, scaled with the arch",
     ),
     "canal_width": (("L3",), "the narrow canal of this reference (see canal depth)"),
+    "pedicle_width": (
+        ("T1", "T5", "T12"),
+        "the thoracic pedicles are L1's scaled with the body and the arch, 5.9 mm at T1 widening to 9.9 mm "
+        "at T12; the narrow mid-thoracic pedicles (3.65 mm at T5 in 20 central-Indian columns) and the wide "
+        "T1 pedicle (9.3 mm on Indian CT) are not modelled; T12 is inside Panjabi 1991 and Kaur 2016",
+    ),
+    "pedicle_height": (
+        ("T12",),
+        "L1's pedicle scaled by the height of a thoracic motion segment (0.7 at T12): 11.5 mm against the "
+        "15.5 mm of 20 central-Indian columns, the only stored thoracic pedicle height",
+    ),
     "facet_sup_transverse": (
-        LEVELS[:7] + LEVELS[8:],
-        "T1-T11: the thoracic facets are warped L1 articular processes, their articular patches (the process "
-        "within 4 mm of its partner, 6-27 vertices) give left and right planes up to 35 deg apart; "
-        "T12-L5: the Visible Human lumbar facets are more sagittal than Masharawi's ranges (the upstream "
+        LEVELS,
+        "T1-T12: the articular pillars of the L1 template turned towards the coronal plane by 25.5 deg "
+        "(T12 by -5.3 deg), near the largest turn that folds no triangle; the whole superior processes then "
+        "measure about 58-67 deg, their articular patches (the process within 4 mm of its partner, used "
+        "here) 45-50 deg; T1's patch is the tip cap of a process without partner; "
+        "L1-L5: the Visible Human lumbar facets are more sagittal than Masharawi's ranges (the upstream "
         "patches: L2 25.0, L3 27.4, L4 25.2, L5 38.4 deg, `tests/test_morphometry.py`), the reference's remeshed "
         "and pushed-apart patches more so",
     ),

@@ -1,4 +1,4 @@
-"""Triangle-surface operations of the reference build: isotropic remeshing, checks, a smooth warp.
+"""Triangle-surface operations of the reference build: isotropic remeshing, checks, sphere fits.
 
 All coordinates in millimetres.  Meshes are ``(vertices (N, 3), faces (F, 3))`` pairs at the package
 boundary; pyvista/VTK objects stay inside the functions.
@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
-from scipy.interpolate import RBFInterpolator
 
 
 def to_polydata(vertices: np.ndarray, faces: np.ndarray) -> pv.PolyData:
@@ -99,13 +98,6 @@ def check_surface(vertices: np.ndarray, faces: np.ndarray) -> dict:
         "edge_min_mm": float(el.min()),
         "edge_max_mm": float(el.max()),
     }
-
-
-def tps_warp(source_pts: np.ndarray, target_pts: np.ndarray, smoothing: float = 0.0):
-    """A thin-plate-spline map R^3 -> R^3 taking ``source_pts`` (K, 3) to ``target_pts`` (K, 3) (exactly when
-    ``smoothing`` is 0), with an affine part; returns a function of (N, 3) points."""
-    rbf = RBFInterpolator(source_pts, target_pts - source_pts, kernel="thin_plate_spline", smoothing=smoothing)
-    return lambda p: p + rbf(p)
 
 
 def sphere_fit(points: np.ndarray) -> tuple[np.ndarray, float]:
