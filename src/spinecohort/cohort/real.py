@@ -443,7 +443,7 @@ def generate_real_cohort(
     bodies.append(np.flatnonzero(ref.region == 12))  # the S1 plate region
     s1_rim_ref = ref.vertices[ref.landmarks.rim_sup["S1"]]
     rng = np.random.default_rng(seed)
-    verts, rows, n_cand, n_apart, openings = [], [], 0, 0, []
+    verts, rows, n_cand, n_apart, n_late, openings = [], [], 0, 0, 0, []
     while len(verts) < n_patients:
         if n_cand >= max_candidates:
             raise RuntimeError(f"only {len(verts)} of {max_candidates} candidates met the criteria {criteria}")
@@ -466,13 +466,20 @@ def generate_real_cohort(
         openings.append(opening)
         truth = pose_truth(q, pose, frs, pose.sacrum(fr, s1_rim_ref))
         if not meets_criteria(truth, criteria):
+            n_late += 1
             continue
         placement = Rotation.from_euler("z", q.axial_rotation_deg, degrees=True).as_matrix()
         verts.append(v @ placement.T + q.translation)
         rows.append({"ID": q.ID, "age": round(q.age, 1), "sex": q.sex, **truth})
         if progress is not None:
             progress(len(verts), n_patients)
-    log.info("accepted %d of %d candidates (%.0f %%)", n_patients, n_cand, 100 * n_patients / n_cand)
+    log.info(
+        "accepted %d of %d candidates (%.0f %%); %d met the criteria on the closed column but not once opened",
+        n_patients,
+        n_cand,
+        100 * n_patients / n_cand,
+        n_late,
+    )
     opened = np.array(openings)
     log.info(
         "%d candidates needed a joint opened over %.1f mm; joints opened by %.2f mm on average, at most %.1f mm",

@@ -46,7 +46,7 @@ DISC_HEIGHT_MEAN_MM = np.concatenate([np.linspace(4.5, 7.2, 11), [8.2, 9.2, 9.8,
 DISC_HEIGHT_SD_MM = np.concatenate([np.full(11, 1.0), [1.0, 1.0, 1.2, 1.0, 1.3, 1.6]])
 #: SD (deg) of the change of a body's wedge angle.  1.5 deg turns the anterior height against the posterior
 #: one by about 0.8 mm over a 30 mm deep endplate; with the patient's scale (SD 4 %) and the disc-coupled
-#: plate lifts the anterior and posterior body heights vary by 1-2 mm, the SDs Kunkel et al. 2011 (T12:
+#: plate lifts the body heights vary by 1-3 mm, as the SDs of Kunkel et al. 2011 (T12:
 #: anterior 1.96, posterior 1.94 mm) and Busscher I et al. Eur Spine J 2010;19(7):1104-1114 (T12-L5: anterior
 #: 1.4-2.8, posterior 0.9-3.8 mm) report; the sum over T4-T12 (SD 4.5 deg) stays well inside the kyphosis SD.
 WEDGE_SD_DEG = 1.5
