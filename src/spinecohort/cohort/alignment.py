@@ -183,6 +183,13 @@ def endplate_frame(normal: np.ndarray) -> np.ndarray:
     return np.stack([ex, np.cross(normal, ex), normal], axis=1)
 
 
+def endplate_frames(normals: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) :func:`endplate_frame` of every unit normal of ``normals`` (K, 3) at once."""
+    ex = np.array([1.0, 0.0, 0.0]) - normals[:, :1] * normals
+    ex /= np.linalg.norm(ex, axis=1, keepdims=True)
+    return np.stack([ex, np.cross(normals, ex), normals], axis=2)
+
+
 def rot_x(angle_deg: float) -> np.ndarray:
     """Rotation about +x (the medio-lateral axis); positive tilts +z towards -y (posteriorly)."""
     a = np.radians(angle_deg)
@@ -212,7 +219,7 @@ def build_chain(
     sag = p.SS + np.concatenate([[0.0], np.cumsum(sagittal_joint_angles(p))])
     cor = coronal_endplate_tilts(p)
     normals = endplate_normal(sag, cor)
-    frames = np.stack([endplate_frame(n) for n in normals])
+    frames = endplate_frames(normals)
     lengths = np.empty(N_POS - 1)
     lengths[0::2] = (disc * p.disc_factor)[::-1] * p.scale  # disc below L5 first
     lengths[1::2] = body[::-1] * p.scale

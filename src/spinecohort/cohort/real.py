@@ -8,16 +8,19 @@ sacrum and hip bones, thoracic levels fitted to level-specific shapes) with
   sacrum and the auricular part of each ilium turn together about the medio-lateral axis through the
   sacro-iliac joints, fading out towards the acetabula (:func:`pelvis_turn_weights`), so the joints stay
   congruent and the acetabula and femoral heads keep their spheres;
-* the alignment of :mod:`spinecohort.cohort.alignment`: every vertebra is a rigid body (times the patient's
-  overall scale) turned so that its mid-axis (the mean of its two endplate normals) takes the orientation of
-  the patient's chain, and hinged on the level below at the joint pivot (the mid-point of its inferior
-  articular surfaces), so the facet joints stay congruent while the disc in front opens or closes; the
-  vertebral shapes and body wedging are the reference's, the segmental angles are the discs';
+* the alignment of :mod:`spinecohort.cohort.alignment`: every vertebra's posterior arch is a rigid body
+  (times the patient's overall scale) turned so that the vertebra's mid-axis (the mean of its two endplate
+  normals) takes the orientation of the patient's chain, and hinged on the level below at the joint pivot
+  (the mid-point of its inferior articular surfaces), so the facet joints stay congruent while the disc in
+  front opens or closes;
+* body and disc shape (:mod:`spinecohort.cohort.shape`): disc heights drawn per level around published means,
+  reached by moving each body's inferior endplate along the body axis (the body takes the difference, the
+  arch stays), and a drawn change of every body's wedge (:func:`reach_discs`);
 * open joints: from L5-S1 upwards a joint whose two bones cross or whose bodies come closer than
   ``MIN_BODY_GAP_MM`` is opened along its disc axis in ``OPEN_STEP_MM`` steps (:func:`separate`).
 
 Ground truth: the reference endplate planes (rim-band centre and least-squares normal) and head spheres
-carried by the imposed similarities, and the pelvic incidence of the turned reference pelvis
+carried by the imposed rigid plate motions and similarities, and the pelvic incidence of the turned reference pelvis
 (:func:`pose_truth`, then :func:`alignment.true_parameters`; no fit of the patient mesh).  Correspondence:
 every patient has the reference's vertices and faces.
 """
@@ -40,7 +43,7 @@ from spinecohort.cohort.alignment import (
     PatientParameters,
     build_chain,
     draw_patient,
-    endplate_frame,
+    endplate_frames,
     meets_criteria,
     pos_inf,
     pos_sup,
@@ -48,6 +51,7 @@ from spinecohort.cohort.alignment import (
     true_parameters,
 )
 from spinecohort.cohort.landmarks import LEVELS
+from spinecohort.cohort.shape import Shape, body_map, draw_shape, shaped_frames, shaped_vertices, spread_disc_change
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +67,7 @@ class ReferenceFrames:
     head_centre: dict  # "L"/"R" -> (3,)
     head_radius: dict
     si_centre: np.ndarray  # (3,) a point on the sacral turn axis
+    pi_by_turn: np.ndarray | None = None  # PI (deg) at every TURN_GRID_DEG turn, tabulated by reference_frames
 
 
 def _plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -72,6 +77,12 @@ def _plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def reference_frames(ref: Reference) -> ReferenceFrames:
+    """The reference's frames, with the PI of every tabulated sacral turn (:func:`turn_for_pi`)."""
+    fr = _reference_frames(ref)
+    return replace(fr, pi_by_turn=np.array([_pelvic_frame(fr, t)[-1] for t in TURN_GRID_DEG]))
+
+
+def _reference_frames(ref: Reference) -> ReferenceFrames:
     lm, v = ref.landmarks, ref.vertices
     centre, normal = {}, {}
     for key, sets in (("sup", lm.endplate_sup), ("inf", lm.endplate_inf)):
@@ -155,7 +166,8 @@ TURN_GRID_DEG = np.linspace(-50.0, 25.0, 151)
 
 def turn_for_pi(fr: ReferenceFrames, pi_deg: np.ndarray) -> np.ndarray:
     """The sacral turn (deg) that gives the pelvic incidence ``pi_deg`` (PI falls monotonically with the turn)."""
-    pis = np.array([_pelvic_frame(fr, t)[-1] for t in TURN_GRID_DEG])
+    pis = fr.pi_by_turn if fr.pi_by_turn is not None else [_pelvic_frame(fr, t)[-1] for t in TURN_GRID_DEG]
+    pis = np.asarray(pis)
     return np.interp(pi_deg, pis[::-1], TURN_GRID_DEG[::-1])
 
 
@@ -221,9 +233,10 @@ def joint_pivots(ref: Reference) -> np.ndarray:
     )
 
 
-def _mid_frame(n_sup: np.ndarray, n_inf: np.ndarray) -> np.ndarray:
+def _mid_frames(n_sup: np.ndarray, n_inf: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) frames of the mid-axes (mean of the two endplate normals) of K vertebrae."""
     m = n_sup + n_inf
-    return endplate_frame(m / np.linalg.norm(m))
+    return endplate_frames(m / np.linalg.norm(m, axis=1, keepdims=True))
 
 
 @dataclass
@@ -256,11 +269,14 @@ def pose_column(p: PatientParameters, turn_deg: float, fr: ReferenceFrames, pivo
     target = build_chain(p, fr.body_height, fr.disc_height)
     pose = Pose(s, np.empty((17, 3, 3)), np.empty((17, 3)), (r, t), turn_deg)
     lower_n = r @ rot_sac @ fr.normal[("S1", "sup")]
+    n_ref = {key: np.array([fr.normal[(lv, key)] for lv in LEVELS]) for key in ("sup", "inf")}
+    m_ref = _mid_frames(n_ref["sup"], n_ref["inf"])
+    idx = np.arange(len(LEVELS))
+    m_tgt = _mid_frames(target.normals[pos_sup(idx)], target.normals[pos_inf(idx)])
+    rots = m_tgt @ np.transpose(m_ref, (0, 2, 1))
     for i in range(len(LEVELS) - 1, -1, -1):
         lv = LEVELS[i]
-        m_ref = _mid_frame(fr.normal[(lv, "sup")], fr.normal[(lv, "inf")])
-        m_tgt = _mid_frame(target.normals[pos_sup(i)], target.normals[pos_inf(i)])
-        rot = m_tgt @ m_ref.T
+        rot = rots[i]
         below = pose.sacrum(fr, pivots[i][None])[0] if i == len(LEVELS) - 1 else pose.vertebra(i + 1, pivots[i])
         axis = rot @ fr.normal[(lv, "inf")] + lower_n
         pose.rot[i] = rot
@@ -269,9 +285,9 @@ def pose_column(p: PatientParameters, turn_deg: float, fr: ReferenceFrames, pivo
     return pose, p
 
 
-def pose_truth(p: PatientParameters, pose: Pose, fr: ReferenceFrames, s1_rim: np.ndarray) -> dict:
-    """The true parameters of a posed patient: the chain of the reference endplate planes (centre, normal)
-    carried by the imposed similarities (no fit of the patient mesh), then :func:`alignment.true_parameters`."""
+def posed_chain(pose: Pose, fr: ReferenceFrames) -> Chain:
+    """The chain of the reference endplate planes (centre, normal; ``fr`` of the shaped vertebrae) carried by
+    the imposed similarities: the true endplates of a posed patient, no fit of its mesh."""
     centres, normals = np.empty((N_POS, 3)), np.empty((N_POS, 3))
     centres[0] = pose.sacrum(fr, fr.centre[("S1", "sup")][None])[0]
     normals[0] = pose.pelvis[0] @ _pelvic_frame(fr, pose.turn_deg)[0] @ fr.normal[("S1", "sup")]
@@ -283,9 +299,13 @@ def pose_truth(p: PatientParameters, pose: Pose, fr: ReferenceFrames, s1_rim: np
     cor = np.degrees(np.arctan2(normals[:, 0], normals[:, 2]))
     m = normals[1:] + normals[:-1]
     lengths = np.einsum("ij,ij->i", centres[1:] - centres[:-1], m / np.linalg.norm(m, axis=1, keepdims=True))
-    frames = np.stack([endplate_frame(n) for n in normals])
-    chain = Chain(sag, cor, normals, centres, frames, lengths)
-    truth = true_parameters(p, chain, s1_rim)
+    frames = endplate_frames(normals)
+    return Chain(sag, cor, normals, centres, frames, lengths)
+
+
+def pose_truth(p: PatientParameters, pose: Pose, fr: ReferenceFrames, s1_rim: np.ndarray) -> dict:
+    """The true parameters of a posed patient: :func:`posed_chain`, then :func:`alignment.true_parameters`."""
+    truth = true_parameters(p, posed_chain(pose, fr), s1_rim)
     truth.update(
         {
             "FH_radius_L": fr.head_radius["L"] * pose.scale,
@@ -311,9 +331,24 @@ def aim(p: PatientParameters, turn_deg: float, fr: ReferenceFrames, pivots: np.n
     return q
 
 
-def pose_vertices(pose: Pose, ref: Reference, fr: ReferenceFrames, pelvis_w: np.ndarray) -> np.ndarray:
-    """(N, 3) mm: every vertebra by its similarity, the pelvis turned by its weights then placed."""
-    v = ref.vertices
+def reach_discs(p, turn_deg, fr, bm, shape, disc_mm, pivots, n_iter: int = 3):
+    """The patient's plate lifts that give its posed column the disc heights ``disc_mm`` (17,) T1-T2 ... L5-S1
+    (:func:`shape.spread_disc_change`; a lift moves no joint pivot, so the pose stays and three fixed-point
+    steps leave under 0.01 mm where the lift stays inside its range).  Returns the Shape."""
+    for _ in range(n_iter):
+        frs = shaped_frames(fr, bm, shape)
+        pose, _ = pose_column(p, turn_deg, frs, pivots, np.zeros(len(LEVELS)))
+        now = posed_chain(pose, frs).lengths[0::2][::-1]  # the chain lists the discs from L5-S1 upwards
+        shape = spread_disc_change(shape, (disc_mm - now) / pose.scale)
+    return shape
+
+
+def pose_vertices(
+    pose: Pose, ref: Reference, fr: ReferenceFrames, pelvis_w: np.ndarray, vertices: np.ndarray | None = None
+) -> np.ndarray:
+    """(N, 3) mm: every vertebra by its similarity, the pelvis turned by its weights then placed; ``vertices``:
+    the patient's shaped reference (:func:`shape.shaped_vertices`), the reference's own by default."""
+    v = ref.vertices if vertices is None else vertices
     out = np.empty_like(v)
     pel = ref.level < 0
     out[pel] = pose.scale * turn_pelvis(v[pel], pelvis_w[pel], fr, pose.turn_deg) @ pose.pelvis[0].T + pose.pelvis[1]
@@ -332,29 +367,31 @@ OPEN_STEP_MM = 0.5
 MAX_OPEN_MM = 5.0
 
 
-def separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies, max_open_mm: float = MAX_OPEN_MM):
+def separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies, max_open_mm: float = MAX_OPEN_MM, vertices=None):
     """Pose a patient with every joint from L5-S1 upwards opened in ``OPEN_STEP_MM`` steps until its two bones
     do not cross and their bodies keep ``MIN_BODY_GAP_MM``; returns vertices, pose, patient, openings (mm), or
-    None when a joint needs more than ``max_open_mm``."""
+    None when a joint needs more than ``max_open_mm``.  ``fr`` and ``vertices``: the patient's shaped frames
+    and reference vertices (the reference's by default)."""
     from spinecohort.anatomy.contacts import pair_contact
 
+    shaped = ref.vertices if vertices is None else vertices
     opening = np.zeros(len(LEVELS))
     pose, q = pose_column(p, turn, fr, pivots, opening)
-    v = pose_vertices(pose, ref, fr, pelvis_w)
+    v = pose_vertices(pose, ref, fr, pelvis_w, shaped)
     # the bones below joint i are settled when it is opened, and opening it moves only the bones above
     for i in range(len(LEVELS) - 1, -1, -1):
         idx = ref.vertebra(i)
         lower = cKDTree(v[bodies[i + 1]])
         while True:
             pose, q = pose_column(p, turn, fr, pivots, opening)
-            v[idx] = pose.vertebra(i, ref.vertices[idx])
-            crossing, _ = pair_contact(v, pairs[i])
-            gap = float(lower.query(v[bodies[i]])[0].min())
-            if crossing == 0 and gap >= MIN_BODY_GAP_MM:
+            v[idx] = pose.vertebra(i, shaped[idx])
+            short = MIN_BODY_GAP_MM - float(lower.query(v[bodies[i]])[0].min())
+            # the (costly) crossing test only once the bodies keep their gap; a gap short by d needs at least d
+            if short <= 0 and pair_contact(v, pairs[i])[0] == 0:
                 break
             if opening[i] >= max_open_mm:
                 return None  # a joint this far apart is no longer a disc: the caller draws another patient
-            opening[i] += OPEN_STEP_MM
+            opening[i] = min(opening[i] + OPEN_STEP_MM * max(1.0, np.ceil(short / OPEN_STEP_MM)), max_open_mm)
     return v, pose, q, opening
 
 
@@ -400,36 +437,49 @@ def generate_real_cohort(
     fr = reference_frames(ref)
     pivots = joint_pivots(ref)
     pelvis_w = pelvis_turn_weights(ref, fr)
+    bm = body_map(ref, fr)
     pairs = bone_pairs(ref.level, ref.region, ref.vertices[:, 0], ref.faces)
     bodies = [np.flatnonzero((ref.level == i) & (ref.region == 0)) for i in range(len(LEVELS))]
     bodies.append(np.flatnonzero(ref.region == 12))  # the S1 plate region
     s1_rim_ref = ref.vertices[ref.landmarks.rim_sup["S1"]]
     rng = np.random.default_rng(seed)
-    verts, rows, n_cand, n_apart, openings = [], [], 0, 0, []
+    verts, rows, n_cand, n_apart, n_late, openings = [], [], 0, 0, 0, []
     while len(verts) < n_patients:
         if n_cand >= max_candidates:
             raise RuntimeError(f"only {len(verts)} of {max_candidates} candidates met the criteria {criteria}")
         n_cand += 1
         p, turn = draw_real_patient(rng, f"P{len(verts) + 1:02d}", fr)
-        p = aim(p, turn, fr, pivots, s1_rim_ref)
-        pose, q = pose_column(p, turn, fr, pivots, np.zeros(len(LEVELS)))
-        if not meets_criteria(pose_truth(q, pose, fr, pose.sacrum(fr, s1_rim_ref)), criteria):
+        disc_mm, wedge_deg = draw_shape(rng)
+        shape = Shape(np.zeros(len(LEVELS)), np.zeros(len(LEVELS)), wedge_deg)
+        p = aim(p, turn, shaped_frames(fr, bm, shape), pivots, s1_rim_ref)
+        shape = reach_discs(p, turn, fr, bm, shape, disc_mm, pivots)
+        frs = shaped_frames(fr, bm, shape)
+        pose, q = pose_column(p, turn, frs, pivots, np.zeros(len(LEVELS)))
+        if not meets_criteria(pose_truth(q, pose, frs, pose.sacrum(fr, s1_rim_ref)), criteria):
             continue  # cheap screen on the closed column; the opened one is checked again below
-        posed = separate(p, turn, ref, fr, pivots, pelvis_w, pairs, bodies)
+        shaped = shaped_vertices(ref.vertices, fr, bm, shape)
+        posed = separate(p, turn, ref, frs, pivots, pelvis_w, pairs, bodies, vertices=shaped)
         if posed is None:
             n_apart += 1
             continue
         v, pose, q, opening = posed
         openings.append(opening)
-        truth = pose_truth(q, pose, fr, pose.sacrum(fr, s1_rim_ref))
+        truth = pose_truth(q, pose, frs, pose.sacrum(fr, s1_rim_ref))
         if not meets_criteria(truth, criteria):
+            n_late += 1
             continue
         placement = Rotation.from_euler("z", q.axial_rotation_deg, degrees=True).as_matrix()
         verts.append(v @ placement.T + q.translation)
         rows.append({"ID": q.ID, "age": round(q.age, 1), "sex": q.sex, **truth})
         if progress is not None:
             progress(len(verts), n_patients)
-    log.info("accepted %d of %d candidates (%.0f %%)", n_patients, n_cand, 100 * n_patients / n_cand)
+    log.info(
+        "accepted %d of %d candidates (%.0f %%); %d met the criteria on the closed column but not once opened",
+        n_patients,
+        n_cand,
+        100 * n_patients / n_cand,
+        n_late,
+    )
     opened = np.array(openings)
     log.info(
         "%d candidates needed a joint opened over %.1f mm; joints opened by %.2f mm on average, at most %.1f mm",
@@ -437,6 +487,10 @@ def generate_real_cohort(
         MAX_OPEN_MM,
         opened.mean(),
         opened.max(),
+    )
+    log.info(
+        "joints opened per disc T1-T2 ... L5-S1 (share of accepted and candidate patients, mean mm): %s",
+        ", ".join(f"{lv} {np.mean(o > 0):.0%} {o.mean():.2f}" for lv, o in zip(LEVELS, opened.T)),
     )
     ids = [r["ID"] for r in rows]
     return SyntheticCohort(ids, np.stack(verts), ref.faces, ref.landmarks, pd.DataFrame(rows), n_cand)
