@@ -7,7 +7,15 @@ import shutil
 import numpy as np
 import pytest
 
-from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section, UserMaterial, validate_model
+from spinecohort.fe.abaqus import (
+    FEModel,
+    LinearElastic,
+    MooneyRivlin,
+    Section,
+    UserMaterial,
+    validate_model,
+    without_elements,
+)
 from spinecohort.fe.calculix import CalculixError, check_input, find_ccx, parse_dat, run_ccx
 from spinecohort.fe.inp_template import InpTemplate, parse_template, read_inp, read_inp_nodes, substitute_coordinates
 from spinecohort.fe.writers import format_id_list, model_to_inp_text, write_inp, write_vtu
@@ -70,6 +78,22 @@ def elastic_column(nz=6):
         materials=[LinearElastic("BONE", 12000.0, 0.3)],
         sections=[Section("COLUMN", "BONE")],
     )
+
+
+def test_without_elements_drops_a_block_renumbers_the_sets_after_it_and_their_sections():
+    model = column_model()  # 54 hexes (0-53), 18 S3 (54-71), 2 springs (72-73)
+    out = without_elements(model, np.arange(54, 72))  # the whole S3 block
+    assert list(out.element_blocks) == ["COLUMN", "LIG"] and out.n_elements == 56
+    np.testing.assert_array_equal(out.element_sets["LOWER"], model.element_sets["LOWER"])  # before the drop
+    assert [s.elset for s in out.sections] == ["LOWER", "UPPER", "LIG"]  # ENDPLATE's section went with it
+    validate_model(out)
+    part = without_elements(model, np.array([0, 54]))  # one hex and one triangle: sets shift by what went before
+    assert part.n_elements == 72 and len(part.element_blocks["ENDPLATE"][1]) == 17
+    lower = model.element_sets["LOWER"]
+    np.testing.assert_array_equal(part.element_sets["LOWER"], lower[lower != 0] - 1)
+    assert without_elements(model, np.zeros(0, np.int64)) is model
+    with pytest.raises(ValueError, match="outside"):
+        without_elements(model, np.array([74]))
 
 
 # --- writing and reading back -----------------------------------------------------------------------

@@ -12,7 +12,7 @@ import pytest
 
 from spinecohort.fe.connections import CONNECTOR_TABLE, posterior_wall, skin_pieces, spread_nodes, truss_pairs
 from spinecohort.fe.connectivity import ConnectivityError, check_connected, unreachable_report
-from spinecohort.fe.export import fe_model, write_deck
+from spinecohort.fe.export import check_deck, fe_model, write_deck
 from spinecohort.fe.materials import DEFAULT_MATERIALS
 from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
 
@@ -220,6 +220,19 @@ def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(te
     m = np.array([float(line.split(",")[2]) for line in cload])
     assert all(line.startswith(f"{n + 2}, ") for line in cload)
     np.testing.assert_allclose(m, 7500.0 * vertebra_frame(template, fe.nodes, "L1")[0][:, 1], atol=1e-5)
+    # the arches act through their connector trusses, as in the ROM sub-models: their S3 skins are left out (they
+    # made ccx's Newton iterations cycle), the pelvis, sacrum and femoral heads keep theirs, and it is one body
+    from spinecohort.fe.pure_moment import arch_skin_free
+
+    loaded = arch_skin_free(fe)
+    arch = np.concatenate([idx for name, idx in fe.element_sets.items() if name.startswith("POST_")])
+    kept = len(fe.element_blocks["SURFACES"][1]) - len(np.unique(arch))
+    assert len(loaded.element_blocks["SURFACES"][1]) == kept > 0
+    assert not any(name.startswith("POST_") for name in loaded.element_sets)
+    assert "*ELEMENT, TYPE=S3, ELSET=SURFACES\n" in text and text.count("*SHELL SECTION") == len(
+        [s for s in loaded.sections if s.thickness_mm]
+    )
+    check_deck(loaded, "load deck")  # raises ConnectivityError if a part hung only on the skins
     with pytest.raises(ValueError, match="unknown load case"):
         model_load_text(fe, template, "twist", "T1")
     with pytest.raises(ValueError, match="top vertebra 'S1'"):

@@ -361,3 +361,32 @@ def elset_types(model: FEModel, elset: str) -> set[str]:
     block_of = np.searchsorted(starts, np.asarray(idx), side="right") - 1
     types = [t for t, _ in model.element_blocks.values()]
     return {types[i] for i in np.unique(block_of)}
+
+
+def without_elements(model: FEModel, drop: np.ndarray) -> FEModel:
+    """`model` without the elements of the 0-based index array `drop` (into the concatenated blocks): each block
+    keeps its other elements in order, every element set is renumbered, and a set (and its section) left with no
+    element is removed.  Nodes stay as they are (a node of no element carries nothing in a ccx solve)."""
+    import dataclasses
+
+    n_el = model.n_elements
+    if not len(drop):
+        return model
+    keep = np.ones(n_el, bool)
+    keep[_check_indices("element", "drop", np.asarray(drop, dtype=np.int64), n_el)] = False
+    new_id = np.cumsum(keep) - 1
+    offsets = model.block_offsets()
+    blocks = {}
+    for name, (etype, conn) in model.element_blocks.items():
+        kept = conn[keep[offsets[name] : offsets[name] + len(conn)]]
+        if len(kept):
+            blocks[name] = (etype, kept)
+    sets = {}
+    for name, idx in model.element_sets.items():
+        idx = np.asarray(idx, dtype=np.int64)
+        idx = new_id[idx[keep[idx]]]
+        if len(idx):
+            sets[name] = idx
+    live = {name.upper() for name in (*sets, *blocks)}
+    sections = [s for s in model.sections if s.elset.upper() in live]
+    return dataclasses.replace(model, element_blocks=blocks, element_sets=sets, sections=sections)

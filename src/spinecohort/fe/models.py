@@ -122,9 +122,9 @@ def write_model(
         if load is None:
             write_deck(fe, out, provenance=heading)
         else:
-            from spinecohort.fe.pure_moment import model_load_text
+            from spinecohort.fe.pure_moment import arch_skin_free, model_load_text
 
-            check_deck(fe, str(out))
+            check_deck(arch_skin_free(fe), str(out))  # the model the load deck carries is one body
             out.write_text(model_load_text(fe, template, load, top, moment_nmm))
     elif fmt == "vtu":
         # the picture without the connector lines (not anatomy); elements keep their deck ids (connectors are last)

@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 
 from spinecohort.cohort.landmarks import LEVELS
-from spinecohort.fe.abaqus import FEModel
+from spinecohort.fe.abaqus import FEModel, without_elements
 from spinecohort.fe.connections import body_layer
 from spinecohort.fe.export import fixed_set
 from spinecohort.fe.facets import vertebra_frame
@@ -37,11 +37,10 @@ LOAD_CASES: dict[str, tuple[int, int]] = {
 
 
 #: step controls of a whole-model load deck: the ROM's (config/config.yaml's rom block: field controls with a
-#: 500 N reference force), but smaller increments.  A whole spine turns ~17 times as much as one unit: with
-#: the ROM's first increment (5 % of 7.5 N.m = 375 N.mm on T1) ccx 2.20 aborts in the fibre law ("*ERROR in
-#: umat_elastic_fiber: fiber extension is too large", fatal, not a cutback), and so does one increment of
-#: 100 N.mm, while four of 25 N.mm converge (tests/test_fe_connections.py).  The first increment is 25 N.mm
-#: (`MODEL_INCREMENT_NMM`); later ones grow as ccx's increment control allows, up to 5 % of the load
+#: 500 N reference force), smaller increments and `MODEL_TIME_INCREMENTATION`.  A whole spine turns ~17 times as
+#: much as one unit and is softest at the start (slack ligaments and fibres): a first increment of 100 N.mm
+#: diverges, 25 N.mm (`MODEL_INCREMENT_NMM`) converges in ~7 Newton iterations; later increments grow as ccx's
+#: increment control allows, up to 5 % of the load (docs/explanation/fe-model.md "Loading the whole model")
 MODEL_STEP_DEFAULTS = dict(
     nlgeom=True,
     min_increment=1e-5,
@@ -50,6 +49,27 @@ MODEL_STEP_DEFAULTS = dict(
     average_force_n=500.0,
 )
 MODEL_INCREMENT_NMM = 25.0
+#: the whole model's increment control: as the ROM's, but an increment grows (x1.5) after two that converged in
+#: at most I_G = 16 iterations, and shrinks after one that took more than I_L = 20 (ccx's defaults 4 and 10).  The
+#: whole spine's increments take 6-12 iterations, more for larger ones but fewer per newton-millimetre (0.05 %
+#: of the load per iteration at 25 N.mm, 0.09 % at 84 N.mm on the test model): with I_G = 4 the step never left
+#: its 25 N.mm first increment (300 increments for the load), with I_G = 8 it stayed at 84 N.mm
+MODEL_TIME_INCREMENTATION = "20, 30, 9, 200, 20, 16, , 20"
+
+
+#: ccx's time-incrementation controls I_0, I_R, I_P, I_C, I_L, I_G, I_S, I_A of the ROM decks: more Newton iterations
+#: before a cutback (I_C 16 -> 200) and more cutbacks (I_A 5 -> 20) than ccx's defaults (see `pure_moment_text`)
+ROM_TIME_INCREMENTATION = "20, 30, 9, 200, 10, 4, , 20"
+
+
+def arch_skin_free(fe: FEModel) -> FEModel:
+    """The whole model as its load deck solves it: without the S3 skins of the posterior arches (element sets
+    ``POST_<lvl>``).  Each arch acts through its truss of stiff connectors (ligament and facet anchors to the
+    body's posterior wall, `spinecohort.fe.connections`), the arch the ROM sub-models carry and validate; the thin
+    skins between the anchors carry nothing of the load, but under NLGEOM they made ccx's Newton iterations cycle
+    (docs/explanation/fe-model.md "Loading the whole model").  The skin nodes stay in the deck."""
+    arch = [np.asarray(idx) for name, idx in fe.element_sets.items() if name.startswith("POST_")]
+    return without_elements(fe, np.unique(np.concatenate(arch)) if arch else np.zeros(0, np.int64))
 
 
 def guide_equations(moment_nmm: np.ndarray) -> tuple[int, list[tuple[int, float]], float]:
@@ -83,6 +103,7 @@ def pure_moment_text(
     average_force_n: float | None = None,
     correction_tolerance: float = 0.01,
     guided: bool = False,
+    time_incrementation: str = ROM_TIME_INCREMENTATION,
 ) -> str:
     """What follows a deck's model data for one pure-moment load case: a REF and a ROT NODE per rigid body
     (numbered right after the mesh), the *RIGID BODY of each (0-based node indices), the fixed nodes
@@ -148,7 +169,7 @@ def pure_moment_text(
         # defaults: with tension-only springs and the exponential fibre law both switching on, the default
         # controls stalled the test model's L3-L4 extension at 47 % of the load; these converge
         # (docs/explanation/fe-model.md)
-        parts.append("*CONTROLS, PARAMETERS=TIME INCREMENTATION\n20, 30, 9, 200, 10, 4, , 20\n")
+        parts.append(f"*CONTROLS, PARAMETERS=TIME INCREMENTATION\n{time_incrementation}\n")
         if average_force_n:
             # ccx accepts an iteration when the largest residual is < 0.5 % of the model's average nodal
             # force.  Under a pure moment that average is ~0.3 N (soft tissue, few loaded nodes), so the
@@ -179,18 +200,21 @@ def model_load_text(
     **step_kw,
 ) -> str:
     """A complete, runnable pure-moment deck of a whole exported model (`spinecohort.fe.export.fe_model`,
-    nodes in template order): the model data, the pelvis fixed (node set ``PELVIS``, else the S1 plate), the
-    body of vertebra `top` rigid (its hex nodes; its posterior skin hangs on it by the connectors: a rigid
-    body holding shell nodes slowed ccx's Newton iterations to a stall) and loaded with `moment_nmm` (N.mm)
-    about its anatomical axis of `case`, one NLGEOM step with the ROM's convergence controls (`step_kw`:
-    those of `pure_moment_text`; default `MODEL_STEP_DEFAULTS`, first increment 25 N.mm), ROT NODE rotations
-    (rad) printed to the .dat file and, if node_file, displacements to the .frd file.  Solve with ``ccx -i <job>``."""
+    nodes in template order): the model data without the arches' skins (`arch_skin_free`: each arch acts through
+    its connector truss), the pelvis fixed (node set ``PELVIS``, else the S1 plate), the body of vertebra `top`
+    rigid (its hex nodes; its arch hangs on it by the connectors: a rigid body holding shell nodes slowed ccx's
+    Newton iterations to a stall) and loaded with `moment_nmm` (N.mm) about its anatomical axis of `case`, one
+    NLGEOM step with the ROM's convergence controls (`step_kw`: those of `pure_moment_text`; default
+    `MODEL_STEP_DEFAULTS`, first increment 25 N.mm, increments growing by `MODEL_TIME_INCREMENTATION`), ROT NODE
+    rotations (rad) printed to the .dat file and, if node_file, displacements to the .frd file.  Solve with
+    ``ccx -i <job>``."""
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
     if top not in LEVELS:
         raise ValueError(f"top vertebra '{top}' is not one of {LEVELS}")
     if len(fe.nodes) < template.n_nodes:  # the template's nodes first, then the facet-joint nodes
         raise ValueError(f"the deck has {len(fe.nodes)} nodes, the template {template.n_nodes}: not its export")
+    fe = arch_skin_free(fe)
     n2 = len(template.grid.nodes)
     inf, sup = body_layer(template, top, 0.0), body_layer(template, top, 1.0)
     rigid = np.arange(inf * n2, (sup + 1) * n2)
@@ -205,7 +229,12 @@ def model_load_text(
     frame = vertebra_frame(template, fe.nodes, top)[0]
     axis, sign = LOAD_CASES[case]
     first = min(MODEL_INCREMENT_NMM / moment_nmm, MODEL_STEP_DEFAULTS["max_increment"])
-    kw = {**MODEL_STEP_DEFAULTS, "initial_increment": first, **step_kw}
+    kw = {
+        **MODEL_STEP_DEFAULTS,
+        "initial_increment": first,
+        "time_incrementation": MODEL_TIME_INCREMENTATION,
+        **step_kw,
+    }
     text = pure_moment_text(
         fe.nodes, {top: rigid}, top, fe.node_sets[fixed_set(fe)], {}, sign * moment_nmm * frame[:, axis], **kw
     )
