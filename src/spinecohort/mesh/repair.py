@@ -369,6 +369,7 @@ def untangle(
     max_outer: int = 20,
     maxiter: int = 300,
     context: UntangleContext | None = None,
+    passes: int = 2,
 ) -> tuple[np.ndarray, RepairReport]:
     """Repair inverted / badly shaped hexes of one sample by local untangling.
 
@@ -378,6 +379,8 @@ def untangle(
     ``prepare_untangle(hexes, reference_points)``, reused across the samples of a cohort (saves ~5 s at 500k hexes).
     Returns (repaired points (N, 3), RepairReport). A mesh without bad elements is returned unchanged (so a
     second call is a no-op). Raises RepairError naming the elements left invalid if every step fails.
+    passes: when the best step still leaves invalid elements, the plan runs again from that step's result, up
+    to this many times in all (a fold at a thin disc next to a concave real endplate can need two).
     """
     points, hexes = check_mesh(points, hexes)
     ref, _ = check_mesh(reference_points, hexes)
@@ -455,6 +458,22 @@ def untangle(
             f"(all surface/feature nodes); attempts: {report.attempts}"
         )
     new, invalid, below, sj, rings, sliding = best
+    if invalid.any() and passes > 1 and invalid.sum() < invalid0.sum():
+        try:
+            again, later = untangle(
+                new, hexes, ref, tau, mu, lam, plan, feature_angle_deg, max_outer, maxiter, ctx, passes - 1
+            )
+        except RepairError as err:
+            raise RepairError(f"{err}; first pass: {report.attempts}") from None
+        moved = np.flatnonzero(np.any(again != points, axis=1))
+        report.invalid_after = 0
+        report.min_scaled_jacobian_after = later.min_scaled_jacobian_after
+        report.moved_nodes = moved
+        report.displacement_mm = again[moved] - points[moved]
+        report.max_displacement_mm = float(np.linalg.norm(report.displacement_mm, axis=1).max(initial=0.0))
+        report.patch_rings, report.sliding = later.patch_rings, later.sliding
+        report.attempts.extend(f"pass 2: {a}" for a in later.attempts)
+        return again, report
     if invalid.any():
         raise RepairError(
             f"untangling failed: {invalid.sum()} invalid elements remain (input had {invalid0.sum()}; "

@@ -362,7 +362,8 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
     """Landmarks of the hex model (node numbering of ``template.nodes``) from the cohort's ``landmarks``.
 
     Endplates = node sets ``EP_SUP_<lvl>``, ``EP_INF_<lvl>``, ``EP_SUP_S1`` (whole O-grid layers, centrally
-    symmetric, so their node mean is the endplate centre); rims = the outer ring of those layers;
+    symmetric, so their node mean is the endplate centre), or, where the cohort's endplates are rim bands
+    (``endplate_full_*`` given), the two outer rings of those layers; rims = the outer ring of those layers;
     femoral heads and pubic symphysis = the surface nodes carrying the cohort's landmark vertices; body =
     nodes of the ``V_<lvl>_*`` hexes.  Part labels: body nodes ``body_<lvl>``, disc nodes ``disc`` (appended
     to the cohort's part names), surface nodes their vertex's label.
@@ -386,6 +387,15 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
     ns = template.nsets
     sup = {lv: ns[f"EP_SUP_{lv}"] for lv in (*LEVELS, "S1")}
     inf = {lv: ns[f"EP_INF_{lv}"] for lv in LEVELS}
+    full_sup, full_inf = {}, {}
+    if landmarks.endplate_full_sup:  # the cohort's endplate planes are rim bands (real, concave endplates)
+        # the hex endplate plane likewise: the two outer rings of the layer (the ring apophysis), not the
+        # whole layer, which dips into the concavity
+        m = len(outer)
+        rim = np.concatenate([outer, outer - m])  # the shell ring and the ring inside it (O-grid ring order)
+        full_sup, full_inf = sup, inf
+        sup = {lv: v[rim] for lv, v in full_sup.items()}
+        inf = {lv: v[rim] for lv, v in full_inf.items()}
     body = {}
     for lv in LEVELS:
         sets = [
@@ -404,12 +414,14 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
         part_names=names,
         endplate_sup=sup,
         endplate_inf=inf,
-        rim_sup={lv: v[outer] for lv, v in sup.items()},
-        rim_inf={lv: v[outer] for lv, v in inf.items()},
+        rim_sup={lv: v[: len(outer)] for lv, v in sup.items()} if full_sup else {lv: v[outer] for lv, v in sup.items()},
+        rim_inf={lv: v[: len(outer)] for lv, v in inf.items()} if full_inf else {lv: v[outer] for lv, v in inf.items()},
         femoral_head={k: surface_nodes(v, f"femoral_head[{k}]") for k, v in landmarks.femoral_head.items()},
         body=body,
         pubic_symphysis=surface_nodes(landmarks.pubic_symphysis, "pubic_symphysis"),
         meta={"source": "hex template node sets", **landmarks.meta},
+        endplate_full_sup=full_sup,
+        endplate_full_inf=full_inf,
     )
 
 
