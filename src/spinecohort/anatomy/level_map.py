@@ -7,7 +7,7 @@ built from a partition of unity, every weight a smoothstep of a distance:
 
 * vertebral body: scaled by ``width / L1 width`` in x and ``depth / L1 depth`` in y; in z by a factor that
   runs linearly from ``posterior height / L1's`` at the posterior wall to ``anterior height / L1's`` at the
-  anterior wall (the wedge);
+  anterior wall (the wedge); optionally narrowed towards its anterior wall (``taper``, a heart shape);
 * posterior elements (behind the posterior wall, blended over ``blend_mm`` across the pedicles): scaled by
   the arch factors (``arch_xyz``) about the posterior wall, which stays attached to the scaled body;
 * articular processes: turned about a vertical axis through the process's centroid by the level's facet
@@ -35,7 +35,9 @@ class LevelShape:
 
     ``body``: endplate width, depth, anterior and posterior body height; ``arch_xyz``: scale of the posterior
     elements in x, y, z; ``facet_sup_deg`` / ``facet_inf_deg``: rotation of the superior / inferior articular
-    processes towards the coronal plane; ``spinous_tip``: the target tip (local, mm) or None to keep it."""
+    processes towards the coronal plane; ``spinous_tip``: the target tip (local, mm) or None to keep it;
+    ``taper``: the fraction by which the body narrows from its middle to its anterior wall (a heart-shaped
+    outline; 0 keeps the template's)."""
 
     width_mm: float
     depth_mm: float
@@ -45,6 +47,7 @@ class LevelShape:
     facet_sup_deg: float = 0.0
     facet_inf_deg: float = 0.0
     spinous_tip: tuple[float, float, float] | None = None
+    taper: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,10 @@ def map_vertebra(
     sz_body = sz_p + (sz_a - sz_p) * f
     w = smoothstep((t.y_posterior - y) / blend_mm)  # 0 in the body, 1 in the arch behind the pedicles' base
     out = np.empty_like(p)
-    out[:, 0] = x * ((1 - w) * sx + w * ax)
+    # the heart shape: the body's width falls off towards its anterior wall, smoothly from the middle
+    y_mid = 0.5 * (t.y_anterior + t.y_posterior)
+    narrow = 1.0 - shape.taper * smoothstep((y - y_mid) / (t.y_anterior - y_mid))
+    out[:, 0] = x * ((1 - w) * sx * narrow + w * ax)
     y_wall = sy * t.y_posterior
     out[:, 1] = (1 - w) * sy * y + w * (y_wall + ay * (y - t.y_posterior))
     out[:, 2] = z * ((1 - w) * sz_body + w * az)
