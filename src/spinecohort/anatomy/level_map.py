@@ -1,14 +1,15 @@
 """A thoracic vertebra as a smooth map of the lumbar template (the remeshed Remus L1), in its body frame.
 
-Every thoracic level of the reference is the same vertex set as L1 moved by :func:`map_vertebra`, so L1's
-region labels, endplate sets, anchors and ligament sites hold on it by index.  The map acts in L1's frame
+Every thoracic level of the reference is the vertex set of one template (the Remus L1 remeshed) moved by
+:func:`map_vertebra`, so the template's region labels, endplate sets, anchors and ligament sites hold on it by
+index.  The map acts in the template's frame
 (``local``: x to the right, y anterior, z superior, mm, origin midway between the endplate centroids) and is
 built from a partition of unity, every weight a smoothstep of a distance:
 
 * vertebral body: scaled by ``width / L1 width`` in x and ``depth / L1 depth`` in y; in z by a factor that
   runs linearly from ``posterior height / L1's`` at the posterior wall to ``anterior height / L1's`` at the
   anterior wall (the wedge); optionally narrowed towards its anterior wall (``taper``, a heart shape);
-* posterior elements (behind the posterior wall, blended over ``blend_mm`` across the pedicles): scaled by
+* posterior elements (behind the posterior wall, blended in over ``blend_mm`` along the pedicles): scaled by
   the arch factors (``arch_xyz``) about the posterior wall, which stays attached to the scaled body;
 * articular processes: turned about a vertical axis through the process's centroid by the level's facet
   rotation (the superior and the inferior process each by the turn of its joint, so each joint's two
