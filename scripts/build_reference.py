@@ -22,7 +22,8 @@ Steps (the data README lists them with the numbers this script prints):
 3. Thoracic levels: the Remus L1 remeshed at ``--edge-thoracic-template`` mm (the thoracic template, labeled by
    the same rules as L1) is moved onto each level by a smooth map in its body frame
    (:mod:`spinecohort.anatomy.level_map`): the body scaled to the level's published endplate width and depth
-   and wedged to its anterior and posterior heights (:data:`BODY_ANCHORS`; each scale corrected three times by
+   and wedged to its anterior and posterior heights (:data:`BODY_ANCHORS`; narrowed anteriorly to a heart
+   shape, :data:`TAPER_ANCHORS`; each scale corrected three times by
    the measured / asked ratio of :mod:`spinecohort.anatomy.morphometry`), the posterior elements scaled by
    :data:`ARCH_ANCHORS` and by the height of a motion segment, the articular processes turned towards the
    coronal plane (:data:`FACET_TARGET_DEG`; a turn that would fold the surface is damped in quarter steps),
@@ -144,6 +145,11 @@ BODY_ANCHORS = {
 #: Transverse scale of the posterior elements (canal, pedicle spacing) against L1: Panjabi's spinal canal
 #: width of T11 and T12 over L1's (1991 Table 4, 1992), held constant above T11.
 ARCH_ANCHORS = ((11.0, 19.4 / 23.7), (12.0, 22.2 / 23.7))
+#: Narrowing of the body towards its anterior wall (level_map.LevelShape.taper): the heart-shaped outline of
+#: the typical thoracic body.  A shape choice, not a published value (no table used here quantifies the
+#: outline): a quarter at T3-T10, none at the transitional T1 and T12; the calibrated widths and depths do not
+#: change with it.
+TAPER_ANCHORS = ((1.0, 0.0), (3.0, 0.25), (10.0, 0.25), (12.0, 0.0))
 #: Superior-facet transverse angle (deg to the mid-sagittal plane) the articular processes are turned to:
 #: the middle of Masharawi 2004's ranges, T1-T11 60-65 (coronal), T12 26-34 (the transition to sagittal).
 FACET_TARGET_DEG = {**{f"T{k}": 62.5 for k in range(1, 12)}, "T12": 30.0}
@@ -245,6 +251,7 @@ def thoracic_levels(args, tv, tf, t_body, l1_disc_mm, log):
             height_posterior_mm=hp,
             arch_xyz=(arch_xy, arch_xy, arch_z),
             spinous_tip=(0.0, float(tip[1]), float(tip[2])),
+            taper=_interp(TAPER_ANCHORS, k),
         )
         fits[k] = shape
         unturned = measure_local(t, map_vertebra(t, replace(shape, spinous_tip=None)), info)

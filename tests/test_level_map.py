@@ -64,6 +64,15 @@ def test_the_body_is_scaled_and_wedged_exactly():
     assert np.allclose(out[far, 2], 0.7 * t.local[far, 2])
 
 
+def test_the_taper_narrows_the_body_towards_its_anterior_wall_only():
+    t = _template()
+    out = L.map_vertebra(t, L.LevelShape(40.0, 30.0, 24.0, 24.0, (1.0, 1.0, 1.0), taper=0.25))
+    body = t.regions["body"]
+    for y, width in ((15.0, 30.0), (7.5, 35.0), (0.0, 40.0), (-15.0, 40.0)):  # 1 - 0.25 * smoothstep(y / 15)
+        row = body[t.local[body, 1] == y]
+        assert np.ptp(out[row, 0]) == pytest.approx(width), y
+
+
 def test_the_facet_turn_rotates_the_pillar_rigidly_and_the_spinous_tip_lands_on_its_target():
     t = _template()
     shape = L.LevelShape(40.0, 30.0, 24.0, 24.0, (1.0, 1.0, 1.0), facet_sup_deg=30.0, facet_inf_deg=30.0)

@@ -1,14 +1,15 @@
 """A thoracic vertebra as a smooth map of the lumbar template (the remeshed Remus L1), in its body frame.
 
-Every thoracic level of the reference is the same vertex set as L1 moved by :func:`map_vertebra`, so L1's
-region labels, endplate sets, anchors and ligament sites hold on it by index.  The map acts in L1's frame
+Every thoracic level of the reference is the vertex set of one template (the Remus L1 remeshed) moved by
+:func:`map_vertebra`, so the template's region labels, endplate sets, anchors and ligament sites hold on it by
+index.  The map acts in the template's frame
 (``local``: x to the right, y anterior, z superior, mm, origin midway between the endplate centroids) and is
 built from a partition of unity, every weight a smoothstep of a distance:
 
 * vertebral body: scaled by ``width / L1 width`` in x and ``depth / L1 depth`` in y; in z by a factor that
   runs linearly from ``posterior height / L1's`` at the posterior wall to ``anterior height / L1's`` at the
-  anterior wall (the wedge);
-* posterior elements (behind the posterior wall, blended over ``blend_mm`` across the pedicles): scaled by
+  anterior wall (the wedge); optionally narrowed towards its anterior wall (``taper``, a heart shape);
+* posterior elements (behind the posterior wall, blended in over ``blend_mm`` along the pedicles): scaled by
   the arch factors (``arch_xyz``) about the posterior wall, which stays attached to the scaled body;
 * articular processes: turned about a vertical axis through the process's centroid by the level's facet
   rotation (the superior and the inferior process each by the turn of its joint, so each joint's two
@@ -35,7 +36,9 @@ class LevelShape:
 
     ``body``: endplate width, depth, anterior and posterior body height; ``arch_xyz``: scale of the posterior
     elements in x, y, z; ``facet_sup_deg`` / ``facet_inf_deg``: rotation of the superior / inferior articular
-    processes towards the coronal plane; ``spinous_tip``: the target tip (local, mm) or None to keep it."""
+    processes towards the coronal plane; ``spinous_tip``: the target tip (local, mm) or None to keep it;
+    ``taper``: the fraction by which the body narrows from its middle to its anterior wall (a heart-shaped
+    outline; 0 keeps the template's)."""
 
     width_mm: float
     depth_mm: float
@@ -45,6 +48,7 @@ class LevelShape:
     facet_sup_deg: float = 0.0
     facet_inf_deg: float = 0.0
     spinous_tip: tuple[float, float, float] | None = None
+    taper: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -103,7 +107,10 @@ def map_vertebra(
     sz_body = sz_p + (sz_a - sz_p) * f
     w = smoothstep((t.y_posterior - y) / blend_mm)  # 0 in the body, 1 in the arch behind the pedicles' base
     out = np.empty_like(p)
-    out[:, 0] = x * ((1 - w) * sx + w * ax)
+    # the heart shape: the body's width falls off towards its anterior wall, smoothly from the middle
+    y_mid = 0.5 * (t.y_anterior + t.y_posterior)
+    narrow = 1.0 - shape.taper * smoothstep((y - y_mid) / (t.y_anterior - y_mid))
+    out[:, 0] = x * ((1 - w) * sx * narrow + w * ax)
     y_wall = sy * t.y_posterior
     out[:, 1] = (1 - w) * sy * y + w * (y_wall + ay * (y - t.y_posterior))
     out[:, 2] = z * ((1 - w) * sz_body + w * az)
