@@ -124,3 +124,19 @@ def test_rays_morph_real_lumbar_bodies_and_discs_without_inverted_elements(real_
     assert sj[lumbar].min() > 0.0
     # the lumbar walls and endplates are met: mean surface distance well under a millimetre
     assert (report.set_index("part").loc[["L1", "L2", "L3", "L4", "L5"], "distance_final_mean_mm"] < 0.6).all()
+
+
+def test_hex_endplate_planes_of_a_real_mean_follow_the_rim_band(real_mean):
+    """The hex model's endplate planes, on the layer nodes nearest the rim band, tilt as the tri model's rim-band
+    planes do; on the whole concave layer they would follow the concavity's asymmetry."""
+    from spinecohort.measure.spinopelvic import measure
+    from spinecohort.virtual.shard_job import hex_landmarks
+
+    mean, c = real_mean
+    t = build_template(mean, c.faces, c.landmarks, TEMPLATE_RESOLUTIONS["coarse"])
+    nodes, _ = morph_template(t, mean, c.faces, c.landmarks, MorphParameters(max_layers=0, surface_map="rays"))
+    tri = measure(mean[None], c.landmarks)
+    hexm = measure(nodes[None], hex_landmarks(t, c.landmarks, nodes, mean))
+    # measured on the default cohort's mean: PI, PT, SS within 1.6 deg, LL within 2.5 deg, L1-L5 lordosis 3.4 deg
+    for key, bound in (("PI", 2.0), ("PT", 2.0), ("SS", 2.0), ("LL", 3.0), ("LL_L1L5", 4.0)):
+        assert abs(float(np.asarray(tri[key])[0]) - float(np.asarray(hexm[key])[0])) < bound, key

@@ -50,6 +50,11 @@ class Layout:
     def cohort(self) -> str:
         return self.path("cohort", "cohort.npz")
 
+    @property
+    def cohort_contacts(self) -> str:
+        """Neighbouring bones of the real-bone cohort: crossings and closest gaps per pair (rule cohort_contacts)."""
+        return self.path("cohort", "contacts.csv")
+
     # stage 1, a user folder: the labeled reference registered onto each patient (register.smk)
     @property
     def reference(self) -> str:

@@ -42,3 +42,19 @@ rule validate_cohort:
         max_degenerate_fraction=config["cohort"]["max_degenerate_fraction"],
     script:
         "../scripts/validate_cohort.py"
+
+
+rule cohort_contacts:
+    input:
+        L.cohort,
+    output:
+        L.cohort_contacts,
+    log:
+        f"{LOGS}/cohort_contacts.log",
+    benchmark:
+        L.benchmark("cohort_contacts")
+    conda:
+        "../../environment.yml"
+    threads: 1
+    script:
+        "../scripts/cohort_contacts.py"

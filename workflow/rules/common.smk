@@ -35,6 +35,13 @@ def personalized_models():
     return [L.personalized_deck(Path(p).stem) for p in COHORT["stls"]]
 
 
+#: the cohort is the embedded generator's real-bone one (its bones carry the reference's level and part labels)
+REAL_BONES = (
+    config["cohort"]["source"] == "synthetic"
+    and config["cohort"].get("generator") == "real"
+)
+
+
 def final_outputs():
     """The targets of `rule all`, each once."""
     return [
@@ -55,6 +62,9 @@ def final_outputs():
         *L.figures,
         RELEASE_BAG,  # release.smk: the verified BagIt bag (its tag manifest is written last)
         *([L.registration_report] if "inputs" in COHORT else []),  # register.smk
+        *(
+            [L.cohort_contacts] if REAL_BONES else []
+        ),  # cohort.smk: no two bones of a patient cross
     ]
 
 

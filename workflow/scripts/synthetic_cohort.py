@@ -27,13 +27,6 @@ with to_file(snakemake.log[0]) as log:
         cohort.vertices.shape[1],
         len(cohort.faces),
     )
-    if snakemake.params.generator == "real":
-        from spinecohort.anatomy.contacts import cohort_contacts
-        from spinecohort.anatomy.reference import load_reference
-        from spinecohort.cohort.real import first_use_reference
-
-        ref = first_use_reference(load_reference())
-        log.info("neighbouring bones:\n%s", cohort_contacts(cohort.vertices, cohort.faces, ref.level, ref.region))
     write_cohort_folder(
         Path(snakemake.output.sheet).parent, cohort.ids, cohort.vertices, cohort.faces, cohort.landmarks, cohort.table
     )

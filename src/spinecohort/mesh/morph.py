@@ -231,7 +231,9 @@ def ray_morphed_bodies(template: HexTemplate, mean_points, mean_faces, landmarks
     for upper, lower in zip(LEVELS[:-1], LEVELS[1:]):  # LEVELS run cranial to caudal
         blocks[lower][-1], blocks[upper][0] = shared_outline(blocks[lower][-1], blocks[upper][0])
     s1 = hex_layers[[i for i, ly in enumerate(template.layers) if ly["kind"] == "s1"]]
-    s1[0], blocks[LEVELS[-1]][0] = shared_outline(s1[0], blocks[LEVELS[-1]][0])
+    # the S1 plate takes L5's outline: L5's inferior endplate keeps the rim its clinical plane is fitted on, and
+    # the labeled S1 plate (the part of the sacrum facing L5) is no body outline to average with
+    s1[0], blocks[LEVELS[-1]][0] = shared_outline(s1[0], blocks[LEVELS[-1]][0], lower_share=0.0)
     inner = n_core + (grid.shell_ring - 2) * len(grid.outer) + np.arange(len(grid.outer))  # the ring inside the shell
     out = {lv: axial_map(blocks[lv], grid.outer, inner, bodies[lv]) for lv in LEVELS}
     plate = landmarks.endplate_surface("sup", "S1")

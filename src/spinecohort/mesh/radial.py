@@ -153,16 +153,16 @@ def plate_map(plate: np.ndarray, patch_vertices: np.ndarray, patch_faces: np.nda
     return (layer + offset[:, None] * n)[None]
 
 
-def shared_outline(lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The two endplate layers (n2, 3) mm facing each other across a disc, each given the mean of their two
-    in-plane shapes about its own centre (heights along the disc's axis kept): the disc between them is then a
-    prism, not a slab sheared by the difference of two bodies' outlines."""
+def shared_outline(lower: np.ndarray, upper: np.ndarray, lower_share: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The two endplate layers (n2, 3) mm facing each other across a disc, each given the same in-plane shape
+    about its own centre, ``lower_share`` of the lower's plus the rest of the upper's (heights along the disc's
+    axis kept): the disc between them is then a prism, not a slab sheared by the difference of two outlines."""
     cl, cu = lower.mean(0), upper.mean(0)
     axis = cu - cl
     axis /= np.linalg.norm(axis)
     ol, ou = lower - cl, upper - cu
     hl, hu = ol @ axis, ou @ axis
-    common = 0.5 * ((ol - hl[:, None] * axis) + (ou - hu[:, None] * axis))
+    common = lower_share * (ol - hl[:, None] * axis) + (1.0 - lower_share) * (ou - hu[:, None] * axis)
     return cl + common + hl[:, None] * axis, cu + common + hu[:, None] * axis
 
 

@@ -358,12 +358,22 @@ def process_shard(
 
 
 # ---------------------------------------------------------------------------------------- landmarks
-def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
+def _nearest_layer_nodes(layer_nodes: np.ndarray, layer_points: np.ndarray, band_points: np.ndarray) -> np.ndarray:
+    """The layer's nodes nearest to the band's points (each band point votes for one node), sorted."""
+    from scipy.spatial import cKDTree
+
+    return np.unique(layer_nodes[cKDTree(layer_points).query(band_points)[1]])
+
+
+def hex_landmarks(
+    template: HexTemplate, landmarks: Landmarks, mean_hex: np.ndarray | None = None, mean_tri: np.ndarray | None = None
+) -> Landmarks:
     """Landmarks of the hex model (node numbering of ``template.nodes``) from the cohort's ``landmarks``.
 
     Endplates = node sets ``EP_SUP_<lvl>``, ``EP_INF_<lvl>``, ``EP_SUP_S1`` (whole O-grid layers, centrally
     symmetric, so their node mean is the endplate centre), or, where the cohort's endplates are rim bands
-    (``endplate_full_*`` given), the two outer rings of those layers; rims = the outer ring of those layers;
+    (``endplate_full_*`` given) and the means are given (``mean_hex`` (n_nodes, 3) and ``mean_tri`` (n_vertices,
+    3) mm), the layer's nodes nearest to the rim band on the means; rims = the outer ring of those layers;
     femoral heads and pubic symphysis = the surface nodes carrying the cohort's landmark vertices; body =
     nodes of the ``V_<lvl>_*`` hexes.  Part labels: body nodes ``body_<lvl>``, disc nodes ``disc`` (appended
     to the cohort's part names), surface nodes their vertex's label.
@@ -388,14 +398,17 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
     sup = {lv: ns[f"EP_SUP_{lv}"] for lv in (*LEVELS, "S1")}
     inf = {lv: ns[f"EP_INF_{lv}"] for lv in LEVELS}
     full_sup, full_inf = {}, {}
-    if landmarks.endplate_full_sup:  # the cohort's endplate planes are rim bands (real, concave endplates)
-        # the hex endplate plane likewise: the two outer rings of the layer (the ring apophysis), not the
-        # whole layer, which dips into the concavity
-        m = len(outer)
-        rim = np.concatenate([outer, outer - m])  # the shell ring and the ring inside it (O-grid ring order)
+    if landmarks.endplate_full_sup and mean_hex is not None and mean_tri is not None:
+        # the cohort's endplate planes are rim bands (real, concave endplates): the hex plane likewise, on the
+        # layer's nodes nearest to the rim band on the mean, not on the whole layer, which dips into the
+        # concavity, nor on its outer ring, which follows the body's outline past the ring apophysis
         full_sup, full_inf = sup, inf
-        sup = {lv: v[rim] for lv, v in full_sup.items()}
-        inf = {lv: v[rim] for lv, v in full_inf.items()}
+        sup = {
+            lv: _nearest_layer_nodes(v, mean_hex[v], mean_tri[landmarks.endplate_sup[lv]]) for lv, v in full_sup.items()
+        }
+        inf = {
+            lv: _nearest_layer_nodes(v, mean_hex[v], mean_tri[landmarks.endplate_inf[lv]]) for lv, v in full_inf.items()
+        }
     body = {}
     for lv in LEVELS:
         sets = [
@@ -414,8 +427,8 @@ def hex_landmarks(template: HexTemplate, landmarks: Landmarks) -> Landmarks:
         part_names=names,
         endplate_sup=sup,
         endplate_inf=inf,
-        rim_sup={lv: v[: len(outer)] for lv, v in sup.items()} if full_sup else {lv: v[outer] for lv, v in sup.items()},
-        rim_inf={lv: v[: len(outer)] for lv, v in inf.items()} if full_inf else {lv: v[outer] for lv, v in inf.items()},
+        rim_sup={lv: v[outer] for lv, v in (full_sup or sup).items()},
+        rim_inf={lv: v[outer] for lv, v in (full_inf or inf).items()},
         femoral_head={k: surface_nodes(v, f"femoral_head[{k}]") for k, v in landmarks.femoral_head.items()},
         body=body,
         pubic_symphysis=surface_nodes(landmarks.pubic_symphysis, "pubic_symphysis"),
@@ -496,7 +509,7 @@ def run_shard_job(
             weights,
             ids,
             landmarks,
-            hex_landmarks(template, landmarks),
+            hex_landmarks(template, landmarks, hex_ssm.mean, ssm.mean),
             writer=writer,
             batch=batch,
             repair=settings["repair"],
