@@ -228,6 +228,21 @@ def test_quantization_is_exact_rounding_to_multiples_of_2_pow_minus_10_mm():
     assert np.abs(q[1] - x[1]) == BOUND_MM
 
 
+def test_q9_encoding_stores_multiples_of_2_pow_minus_9_mm_within_half_of_it(tmp_path):
+    rng = np.random.default_rng(9)
+    x = rng.uniform(-470, 470, size=(4, 300, 3))
+    path = tmp_path / "q9.zarr"
+    S.create_store(path, 300, 300, n_modes=2, levels=(0, 1), shard_models=4, encoding="float32-q9")
+    # half the 2^-9 mm quantum: 2^-10 mm = 0.00098 mm, recorded in the store's attributes
+    assert S.error_bound_mm("float32-q9") == 2.0**-10
+    assert zarr.open_group(str(path), mode="r").attrs["quantum_mm"] == 2.0**-9
+    S.write_shard(path, 0, x, -x)
+    tri, hexp = S.read_model(path, 2)
+    assert np.all(tri.astype(np.float64) * 512 == np.rint(tri.astype(np.float64) * 512))  # exact multiples
+    assert np.abs(tri - x[2]).max() <= 2.0**-10 and np.abs(hexp + x[2]).max() <= 2.0**-10
+    assert np.array_equal(tri, S.quantize_mm(x[2], "float32-q9"))
+
+
 def _store_with_shards(path, n_tri, n_hex, n_modes, levels, shard_models, chunk_models, seed=0):
     S.create_store(path, n_tri, n_hex, n_modes, levels, shard_models, chunk_models=chunk_models)
     total = S.n_models(n_modes, levels)

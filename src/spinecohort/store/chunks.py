@@ -12,15 +12,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from spinecohort.store.format import QUANTUM_EXP
-
-
 @numba.njit(cache=True, inline="always")
 def _stored_value_nb(x, quantize):
-    """The stored float32 value of one coordinate x mm: :func:`quantize_mm`'s rounding to 2^-10 mm in float64
-    (then exact in float32), or the nearest float32."""
-    if quantize:
-        return np.float32(np.rint(x * 2.0**QUANTUM_EXP)) * np.float32(2.0**-QUANTUM_EXP)
+    """The stored float32 value of one coordinate x mm: with ``quantize`` = 2^k > 0, :func:`quantize_mm`'s
+    rounding to 2^-k mm in float64 (then exact in float32); with 0.0 the nearest float32."""
+    if quantize > 0.0:
+        return np.float32(np.rint(x * quantize)) * np.float32(1.0 / quantize)
     return np.float32(x)
 
 
@@ -28,8 +25,8 @@ def _stored_value_nb(x, quantize):
 def _stored_chunks_nb(x, quantize, chunk, out):
     """The stored values of a batch x (B, N, 3) mm, chunk by chunk in stored order: out (K, 3, N, chunk)
     float32 with out[k, c, n, m] = value of model k * chunk + m, node n, coordinate c (``CHUNK_ORDER``);
-    models past B are 0 (the boundary chunk's fill value).  quantize: rint(x * 2^10) / 2^10 in float64,
-    cast to float32 (exact, see :func:`quantize_mm`), else the nearest float32.  Returns (min, max, all
+    models past B are 0 (the boundary chunk's fill value).  quantize = 2^k: rint(x * 2^k) / 2^k in float64,
+    cast to float32 (exact, see :func:`quantize_mm`); 0.0: the nearest float32.  Returns (min, max, all
     finite) of the stored values.
 
     One pass for what numpy does in five (scale, rint, cast, rescale, transpose copy) plus the range check:
@@ -249,7 +246,7 @@ class LinearPoints:
     def __len__(self) -> int:
         return len(self.weights)
 
-    def stored_chunks(self, quantize: bool, max_abs_mm: float, out: np.ndarray, scratch) -> int:
+    def stored_chunks(self, quantize: float, max_abs_mm: float, out: np.ndarray, scratch) -> int:
         """The batch's models into ``out`` (K, 3, N, C) float32, inner chunk by inner chunk in stored order
         (models past the batch: 0, the boundary chunk's fill value); returns the count of values not finite or
         beyond max_abs_mm.  scratch: (rows (C, NB) float32, acc and base (NB,) float64)."""

@@ -53,9 +53,10 @@ from spinecohort.store.grid import (
     shard_range,
 )
 
-#: coordinates are stored as multiples of 2^-QUANTUM_EXP mm (2^-10 mm = 0.98 um; rounding error <= 0.49 um)
+#: the finest quantum of the encodings: "float32-q10" stores multiples of 2^-10 mm (0.98 um; rounding error
+#: <= 0.49 um), "float32-q9" of 2^-9 mm (error <= 0.98 um); it bounds the coordinates float32 holds exactly
 QUANTUM_EXP = 10
-ENCODINGS = ("float32-q10", "float32")
+ENCODINGS = ("float32-q10", "float32-q9", "float32")
 #: the per-shard coordinate arrays
 POINT_ARRAYS = ("tri/points", "hex/volume_points")
 SURFACE_VERTEX = "hex/surface_vertex"
@@ -82,14 +83,19 @@ class StoreVersionError(ValueError):
     """The store was written by another version of spinecohort (its ``format`` attribute differs)."""
 
 
-def quantize_mm(x: np.ndarray, encoding: str = "float32-q10") -> np.ndarray:
-    """Coordinates (mm, any float dtype) as stored: float32 multiples of 2^-10 mm ("float32-q10") or the
-    nearest float32 ("float32").  Rounding happens in float64, so it is exact: |x| * 2^10 < 2^24."""
-    if encoding == "float32":
-        return np.asarray(x, dtype=np.float32)
-    if encoding != "float32-q10":
+def quantum_scale(encoding: str) -> float:
+    """2^k for "float32-qk" (coordinates stored as multiples of 2^-k mm), 0.0 for "float32" (no rounding)."""
+    if encoding not in ENCODINGS:
         raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
-    scale = float(2**QUANTUM_EXP)
+    return 0.0 if encoding == "float32" else float(2 ** int(encoding.split("-q")[1]))
+
+
+def quantize_mm(x: np.ndarray, encoding: str = "float32-q10") -> np.ndarray:
+    """Coordinates (mm, any float dtype) as stored: float32 multiples of 2^-k mm ("float32-qk", k = 10 or 9) or
+    the nearest float32 ("float32").  Rounding happens in float64, so it is exact: |x| * 2^k < 2^24."""
+    scale = quantum_scale(encoding)
+    if not scale:
+        return np.asarray(x, dtype=np.float32)
     return (np.rint(np.asarray(x, dtype=np.float64) * scale) / scale).astype(np.float32)
 
 
@@ -105,14 +111,11 @@ def _blosc_codecs(clevel: int) -> tuple[BloscCodec, Blosc]:
 def error_bound_mm(encoding: str, max_abs_mm: float = 512.0) -> float:
     """Largest |decoded - input| in mm for coordinates with |x| <= max_abs_mm.
 
-    "float32-q10": half the 2^-10 mm quantum (the rounded value is exact in float32); "float32": one float32
+    "float32-qk": half the 2^-k mm quantum (the rounded value is exact in float32); "float32": one float32
     rounding, at most 2^-24 |x|.
     """
-    if encoding == "float32":
-        return _F32_HALF_ULP_REL * max_abs_mm
-    if encoding == "float32-q10":
-        return 0.5 * 2.0**-QUANTUM_EXP
-    raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
+    scale = quantum_scale(encoding)
+    return 0.5 / scale if scale else _F32_HALF_ULP_REL * max_abs_mm
 
 
 def default_chunk_models(shard_models: int, levels=DEFAULT_LEVELS) -> int:
@@ -206,7 +209,7 @@ def create_store(
             "hex_model": "node k of the hex model (k+1 of the template deck): hex/volume_points[i][k] for k < "
             "n_volume_nodes, else tri/points[i][hex/surface_vertex[k - n_volume_nodes]]",
             "encoding": encoding,
-            "quantum_mm": 2.0**-QUANTUM_EXP if encoding == "float32-q10" else None,
+            "quantum_mm": 1.0 / quantum_scale(encoding) if quantum_scale(encoding) else None,
             "max_abs_mm": float(max_abs_mm),
             "error_bound_mm": error_bound_mm(encoding, max_abs_mm),
         }

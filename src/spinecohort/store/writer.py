@@ -30,6 +30,7 @@ from spinecohort.store.format import (
     _shard_objects,
     _sidecar,
     quantize_mm,
+    quantum_scale,
     vertex_selector,
 )
 from spinecohort.store.grid import model_name, shard_range, weights_of
@@ -157,7 +158,7 @@ class ShardWriter:
         if self.n_written % self.chunk:
             raise ValueError(f"only the last batch may be a partial chunk of {self.chunk} models")
         n_chunks = -(-b // self.chunk)  # a partial last chunk is the array's boundary chunk, zero-filled
-        quantize = self.meta["encoding"] == "float32-q10"
+        quantize = quantum_scale(self.meta["encoding"])  # 2^k, or 0.0: no rounding
         values = {}
         for name, x in batch.items():  # every chunk of the batch is formed and checked before any is encoded
             want = (self.n_nodes[name], 3)
