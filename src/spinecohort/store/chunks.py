@@ -12,6 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+
 @numba.njit(cache=True, inline="always")
 def _stored_value_nb(x, quantize):
     """The stored float32 value of one coordinate x mm: with ``quantize`` = 2^k > 0, :func:`quantize_mm`'s
