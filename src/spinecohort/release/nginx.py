@@ -124,6 +124,18 @@ class LocalServer:
             out.append(Request(uri, int(status), int(nbytes), rng))
         return out
 
-    def clear_log(self) -> None:
-        """Start counting afresh (nginx keeps appending to the same, truncated file)."""
-        (self.workdir / "access.log").write_bytes(b"")
+    def clear_log(self, settle_s: float = 0.5, timeout_s: float = 30.0) -> None:
+        """Start counting afresh (nginx keeps appending to the same, truncated file), once the log has not grown
+        for ``settle_s``: a response still being sent to an earlier client would otherwise be counted here."""
+        import time
+
+        log = self.workdir / "access.log"
+        size, since, start = -1, time.monotonic(), time.monotonic()
+        while time.monotonic() - start < timeout_s:
+            now = log.stat().st_size if log.is_file() else 0
+            if now != size:
+                size, since = now, time.monotonic()
+            elif time.monotonic() - since >= settle_s:
+                break
+            time.sleep(0.05)
+        log.write_bytes(b"")
