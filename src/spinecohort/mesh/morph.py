@@ -96,15 +96,10 @@ def _ray_points(points: np.ndarray, centres: np.ndarray, target: np.ndarray, fac
 def ray_weights(grid: OGrid, core_cells: int) -> tuple[np.ndarray, np.ndarray]:
     """For every 2-D O-grid node: the outer-boundary node of its ray (-1 for core nodes) and its radial
     fraction along the ray (0 on the core block's boundary, 1 on the outer boundary)."""
-    m = len(grid.outer)
-    n_core = len(grid.nodes) - grid.shell_ring * m
-    start = grid.nodes[core_boundary_ids(core_cells)]
-    outer = grid.nodes[grid.outer]
-    ring = grid.nodes[n_core:].reshape(grid.shell_ring, m, 2)
+    ids, _, end, ring_frac = ring_lines(grid, core_boundary_ids(core_cells))
     outer_of = np.full(len(grid.nodes), -1)
     frac = np.zeros(len(grid.nodes))
-    outer_of[n_core:] = np.tile(grid.outer, grid.shell_ring)
-    frac[n_core:] = (np.linalg.norm(ring - start[None], axis=2) / np.linalg.norm(outer - start, axis=1)[None]).ravel()
+    outer_of[ids], frac[ids] = end, ring_frac
     return outer_of, frac
 
 
@@ -273,13 +268,14 @@ def morph_template(
         faces = _faces_of(mean_faces, target_ids)
         t0 = time.perf_counter()
         before = float(surface_distance(flat[surf_ids], target, faces).mean())
-        moved, history = _multilayer_valid(
-            flat, surf_ids, _block_hexes(grid, block.shape[0]), target, faces, params, before
-        )
+        if name in rays:  # the ray maps start from the placed template; a BCPD layer would only be discarded
+            moved, history = rays[name].reshape(-1, 3), []
+        else:
+            moved, history = _multilayer_valid(
+                flat, surf_ids, _block_hexes(grid, block.shape[0]), target, faces, params, before
+            )
         after_reg = history[-1]["mean_distance"] if history else before
-        if name in rays:
-            moved = rays[name].reshape(-1, 3)
-        elif params.project:
+        if name not in rays and params.project:
             groups, spread = _projection_groups(
                 block.shape,
                 grid,

@@ -174,6 +174,7 @@ def ring_lines(grid, cb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     ring_ids = n_core + np.arange(grid.shell_ring * m)
     j = np.tile(np.arange(m), grid.shell_ring)
     start, end = cb[j], grid.outer[j]
-    span = grid.nodes[end] - grid.nodes[start]
-    frac = np.einsum("ij,ij->i", grid.nodes[ring_ids] - grid.nodes[start], span) / np.einsum("ij,ij->i", span, span)
+    frac = np.linalg.norm(grid.nodes[ring_ids] - grid.nodes[start], axis=1) / np.linalg.norm(
+        grid.nodes[end] - grid.nodes[start], axis=1
+    )
     return ring_ids, start, end, frac

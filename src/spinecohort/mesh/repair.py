@@ -458,22 +458,17 @@ def untangle(
             f"(all surface/feature nodes); attempts: {report.attempts}"
         )
     new, invalid, below, sj, rings, sliding = best
+    min_sj_after = float(sj.min())
     if invalid.any() and passes > 1 and invalid.sum() < invalid0.sum():
         try:
-            again, later = untangle(
+            new, later = untangle(
                 new, hexes, ref, tau, mu, lam, plan, feature_angle_deg, max_outer, maxiter, ctx, passes - 1
             )
         except RepairError as err:
             raise RepairError(f"{err}; first pass: {report.attempts}") from None
-        moved = np.flatnonzero(np.any(again != points, axis=1))
-        report.invalid_after = 0
-        report.min_scaled_jacobian_after = later.min_scaled_jacobian_after
-        report.moved_nodes = moved
-        report.displacement_mm = again[moved] - points[moved]
-        report.max_displacement_mm = float(np.linalg.norm(report.displacement_mm, axis=1).max(initial=0.0))
-        report.patch_rings, report.sliding = later.patch_rings, later.sliding
+        invalid = np.zeros(0, bool)
+        min_sj_after, rings, sliding = later.min_scaled_jacobian_after, later.patch_rings, later.sliding
         report.attempts.extend(f"pass 2: {a}" for a in later.attempts)
-        return again, report
     if invalid.any():
         raise RepairError(
             f"untangling failed: {invalid.sum()} invalid elements remain (input had {invalid0.sum()}; "
@@ -481,7 +476,7 @@ def untangle(
         )
     moved = np.flatnonzero(np.any(new != points, axis=1))
     report.invalid_after = 0
-    report.min_scaled_jacobian_after = float(sj.min())
+    report.min_scaled_jacobian_after = min_sj_after
     report.moved_nodes = moved
     report.displacement_mm = new[moved] - points[moved]
     report.max_displacement_mm = float(np.linalg.norm(report.displacement_mm, axis=1).max(initial=0.0))

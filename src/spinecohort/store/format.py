@@ -178,8 +178,7 @@ def create_store(
     n_volume = int(n_hex_nodes) - len(sv)
     if n_volume < 1:
         raise ValueError(f"the hex model's {n_hex_nodes} nodes leave no volume node after {len(sv)} surface nodes")
-    if encoding not in ENCODINGS:
-        raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
+    scale = quantum_scale(encoding)  # 2^k, 0.0 unrounded; raises on an unknown encoding
     if not 0 < max_abs_mm < 2.0 ** (24 - QUANTUM_EXP):
         raise ValueError(f"max_abs_mm must be in (0, {2 ** (24 - QUANTUM_EXP)}) mm, got {max_abs_mm}")
     lv = _levels_array(levels)
@@ -209,7 +208,7 @@ def create_store(
             "hex_model": "node k of the hex model (k+1 of the template deck): hex/volume_points[i][k] for k < "
             "n_volume_nodes, else tri/points[i][hex/surface_vertex[k - n_volume_nodes]]",
             "encoding": encoding,
-            "quantum_mm": 1.0 / quantum_scale(encoding) if quantum_scale(encoding) else None,
+            "quantum_mm": 1.0 / scale if scale else None,
             "max_abs_mm": float(max_abs_mm),
             "error_bound_mm": error_bound_mm(encoding, max_abs_mm),
         }
