@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -170,3 +171,128 @@ def test_coverage_counts_both_sides():
     assert cov.loc["Wilke et al. 1999, Spine 24:755"].tolist() == [12, 0]
     assert cov.loc["Remus et al. 2021, PLoS ONE 16:e0250456"].tolist() == [0, 6]
     assert cov.loc["Dreischarf et al. 2014, J Biomech 47:1757"].tolist() == [3, 4]
+
+
+# ---- accessors the validation tables use ------------------------------------------------------------------
+
+ACCESSORS = (R.lumbar_total_rom, R.intradiscal_pressure, R.facet_forces, R.remus_segmental_rom)
+
+
+@pytest.mark.parametrize("accessor", ACCESSORS, ids=lambda f: f.__name__)
+def test_accessors_return_the_documented_columns(accessor):
+    """Every accessor gives the same leading columns (facet forces add ``facet`` after ``condition``), with a float
+    value column, whether or not the numbers were obtained."""
+    out = accessor()
+    expected = list(R.ACCESSOR_COLUMNS)
+    if accessor is R.facet_forces:
+        expected.insert(expected.index("condition") + 1, "facet")
+    assert list(out.columns) == expected
+    assert out["value"].dtype == float and out["moment_nmm"].dtype == float
+
+
+def test_accessors_are_empty_exactly_while_their_gap_is_listed():
+    """L1-L5 ROM (Dreischarf 2014) and Remus 2021's segmental ROM are not obtained: the accessors are empty, and
+    the gaps list names them. Whoever types the numbers in must also take the gap out, or this fails."""
+    gaps = R.not_obtained()
+    dreischarf_rom = (gaps["source"] == R.DREISCHARF_SOURCE) & (gaps["quantity"] == "rom")
+    remus_rom = (gaps["source"] == R.REMUS_SOURCE) & (gaps["quantity"] == "rom") & gaps["levels"].str.contains("L4-L5")
+    assert R.lumbar_total_rom().empty == dreischarf_rom.any()
+    assert R.remus_segmental_rom().empty == remus_rom.any()
+    # the abstract's median differences are Dreischarf's only numbers here, and they are not a ROM
+    assert R.lumbar_total_rom().empty and len(R.select_references(R.load_validation_references(), level="L1-L5")) == 3
+
+
+def test_intradiscal_pressure_accessor():
+    """At L4-L5: Wilke 1999's twelve in-vivo values (0.1 MPa lying prone ... 2.3 MPa lifting 20 kg with a round
+    back), none under an applied moment; no level holds in-vitro pressures yet, so L1-L2 is empty."""
+    idp = R.intradiscal_pressure("L4-L5")
+    assert len(idp) == 12 and set(idp["unit"]) == {"MPa"} and idp["moment_nmm"].isna().all()
+    assert idp["value"].min() == 0.1 and idp["value"].max() == 2.3
+    assert R.intradiscal_pressure().equals(idp)  # the only level held
+    assert R.intradiscal_pressure("L1-L2").empty
+    with pytest.raises(ValueError, match="'L4L5' is not of the form"):
+        R.intradiscal_pressure("L4L5")
+
+
+def test_facet_forces_accessor_names_the_facet():
+    """Jaumard 2011 Table 2: axial rotation and lateral bending at T12-L2 each give an ipsilateral and a
+    contralateral mean +- SD (4 + 4 rows); the other 13 rows do not name a side."""
+    ff = R.facet_forces()
+    assert len(ff) == 21 and set(ff["facet"]) <= set(R.FACET_SIDES)
+    assert ff["facet"].value_counts().to_dict() == {"unspecified": 13, "ipsilateral": 4, "contralateral": 4}
+    contra = ff[(ff["motion"] == "axial_rotation") & (ff["facet"] == "contralateral") & (ff["statistic"] == "mean")]
+    assert contra["value"].tolist() == [70.3]
+    assert len(R.facet_forces("T12-L2")) == 18 and list(R.facet_forces()["level"].unique()) == [
+        "T12-L2",
+        "L2-L3",
+        "L4-L5",
+    ]
+    sides = R.facet_side(pd.Series(["Contralateral facet", "sum of both facets", "ipsilateral", "in vitro", None]))
+    assert sides.tolist() == ["contralateral", "both", "ipsilateral", "unspecified", "unspecified"]
+
+
+def _rows(source, level, motion, quantity, unit, stats):
+    return [
+        {
+            "level": level,
+            "motion": motion,
+            "quantity": quantity,
+            "statistic": s,
+            "value": v,
+            "unit": unit,
+            "source": source,
+        }
+        for s, v in stats.items()
+    ]
+
+
+def test_accessors_pick_and_order_typed_in_numbers():
+    """With numbers typed in (made-up values, for the selection only): the L1-L5 accessor keeps ROM at the span and
+    drops the median differences; the Remus accessor keeps segments L1-L2 ... L5-S1 cranial to caudal and drops the
+    L1-L5 total and other sources; both sources' L1-L5 values are span ROM; in-vitro (min, median, max) and model (model_min, model_median, model_max) ranges
+    pass the ordering check."""
+    table = pd.DataFrame(
+        _rows(R.DREISCHARF_SOURCE, "L1-L5", "flexion", "rom", "deg", {"min": 1.0, "median": 2.0, "max": 3.0})
+        + _rows(
+            R.DREISCHARF_SOURCE, "L1-L5", "flexion", "rom", "deg", {"model_min": 1.5, "model_median": 2, "model_max": 4}
+        )
+        + _rows(R.DREISCHARF_SOURCE, "L1-L5", "flexion_extension", "rom_median_difference", "deg", {"mean": 2.0})
+        + _rows(R.REMUS_SOURCE, "L5-S1", "flexion", "rom", "deg", {"single": 1.0})
+        + _rows(R.REMUS_SOURCE, "L1-L2", "flexion", "rom", "deg", {"single": 2.0})
+        + _rows(R.REMUS_SOURCE, "L1-L5", "flexion", "rom", "deg", {"single": 3.0})
+        + _rows("other", "L2-L3", "flexion", "rom", "deg", {"single": 4.0})
+    )
+    R.check_references(table)
+    total = R.lumbar_total_rom(table)
+    assert len(total) == 7 and set(total["quantity"]) == {"rom"}  # Dreischarf's six and Remus's L1-L5 value
+    wide = R.reference_wide(total.assign(condition="", moment_nmm=7500, preload_n=0)).set_index("source")
+    assert wide.loc[R.DREISCHARF_SOURCE, ["min", "median", "max"]].tolist() == [1.0, 2.0, 3.0]
+    assert wide.loc[R.DREISCHARF_SOURCE, ["model_min", "model_median", "model_max"]].tolist() == [1.5, 2.0, 4.0]
+    remus = R.remus_segmental_rom(table)
+    assert remus["level"].tolist() == ["L1-L2", "L5-S1"] and remus["value"].tolist() == [2.0, 1.0]
+    reversed_models = table.assign(value=np.where(table["statistic"] == "model_max", 1.0, table["value"]))
+    with pytest.raises(ValueError, match="model_min > model_max|model_median > model_max"):
+        R.check_references(reversed_models)
+
+
+def test_level_order_runs_cranial_to_caudal():
+    levels = pd.Series(["L5-S1", "x", "L2-L3", "L1-L5", "T12-L1", "L1-L2", "T1-T2"])
+    ordered = levels.iloc[np.argsort(R.level_order(levels), kind="stable")].tolist()
+    assert ordered == ["T1-T2", "T12-L1", "L1-L2", "L1-L5", "L2-L3", "L5-S1", "x"]
+
+
+def test_every_number_is_physically_plausible():
+    """Bounds no measurement of an intact adult spine exceeds: one segment rotates < 25 deg to one side under
+    7.5 N.m (Wilke 2017's largest full range is 14 deg), a whole span < 60 deg; nucleus pressures stay below
+    3 MPa (Wilke 1999's highest, lifting 20 kg with a round back, is 2.3 MPa); facet contact forces are pushes
+    below 300 N (Jaumard's largest is 117 N)."""
+    table = R.load_validation_references()
+    span = table["level"].isin(["L1-L5", "T1-T12"])
+    upper = {"rom": 25.0, "rom_full": 30.0, "intradiscal_pressure": 3.0, "facet_force": 300.0}
+    per_segment = table[~span]
+    assert set(per_segment["quantity"]) <= set(upper)
+    assert ((per_segment["value"] >= 0) & (per_segment["value"] < per_segment["quantity"].map(upper))).all()
+    spans = table[span]
+    assert spans.loc[spans["quantity"].isin(["rom", "rom_full"]), "value"].lt(60).all()
+    # Dreischarf's model-vs-in-vitro median differences (2, 1, 5 deg) are a fraction of a span's range
+    assert spans.loc[spans["quantity"] == "rom_median_difference", "value"].between(0, 10).all()

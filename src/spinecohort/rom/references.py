@@ -8,6 +8,10 @@ where none applies or the source does not state it), ``n``, ``condition``, ``loc
 ``provenance`` beside. The README next to the files says what was obtained from where; the numbers wanted but
 not obtained are listed, one group a row, in ``gaps/not_obtained.csv`` (`not_obtained`).
 
+The validation tables ask for one kind of reference at a time through `lumbar_total_rom`, `intradiscal_pressure`,
+`facet_forces` and `remus_segmental_rom`: each returns the `ACCESSOR_COLUMNS` (plus ``facet`` for facet forces),
+sorted cranial to caudal, and an empty frame of the same columns while its numbers are only in the gaps list.
+
 Quantities and their units:
 
 ========================  ====  =======================================================================
@@ -21,6 +25,7 @@ facet_force               N     facet joint contact force
 
 from __future__ import annotations
 
+import re
 from importlib import resources
 
 import numpy as np
@@ -40,7 +45,10 @@ QUANTITY_UNITS: dict[str, str] = {
     "facet_force": "N",
 }
 
-STATISTICS: frozenset[str] = frozenset({"mean", "sd", "median", "min", "max", "low", "high", "single"})
+#: ``model_*`` are summaries over a set of published FE models (Dreischarf et al. 2014 compare eight).
+STATISTICS: frozenset[str] = frozenset(
+    {"mean", "sd", "median", "min", "max", "low", "high", "single", "model_median", "model_min", "model_max"}
+)
 LOAD_DIRECTIONS: frozenset[str] = frozenset(
     {"flexion", "extension", "lateral_bending", "axial_rotation", "flexion_extension", "axial_compression"}
 )
@@ -71,7 +79,10 @@ GAP_COLUMNS: tuple[str, ...] = (
 GAP_QUANTITIES: frozenset[str] = frozenset(QUANTITY_UNITS) | {"mesh_convergence", "calibration_target"}
 
 #: Pairs (lower, upper) of statistics that must be ordered within one reference.
-_ORDERED = (("low", "high"), ("min", "median"), ("median", "max"), ("min", "max"))
+_ORDERED = (
+    ("low", "high"), ("min", "median"), ("median", "max"), ("min", "max"),
+    ("model_min", "model_median"), ("model_median", "model_max"), ("model_min", "model_max"),
+)  # fmt: skip
 _KEY = ["source", "level", "motion", "quantity", "condition", "moment_nmm", "preload_n"]
 
 
@@ -201,3 +212,112 @@ def reference_coverage(table: pd.DataFrame, gaps: pd.DataFrame) -> pd.DataFrame:
     out = pd.concat([got, lost], axis=1).fillna(0).astype(int)
     out.index.name = "source"
     return out.sort_index().reset_index()
+
+
+# ---- accessors the validation tables use -------------------------------------------------------------------
+
+DREISCHARF_SOURCE = "Dreischarf et al. 2014, J Biomech 47:1757"
+REMUS_SOURCE = "Remus et al. 2021, PLoS ONE 16:e0250456"
+
+#: Columns every accessor returns, in this order (`facet_forces` adds ``facet``).
+ACCESSOR_COLUMNS: tuple[str, ...] = (
+    "level", "motion", "statistic", "value", "unit", "source", "condition",
+    "quantity", "moment_nmm", "preload_n", "n", "locator", "provenance",
+)  # fmt: skip
+#: Which facet of the joint pair a facet force belongs to, read from the row's ``condition``.
+FACET_SIDES: tuple[str, ...] = ("ipsilateral", "contralateral", "both", "unspecified")
+#: Vertebrae cranial to caudal; a level (``L4-L5``) or span (``L1-L5``) sorts by its cranial, then caudal end.
+VERTEBRAE: tuple[str, ...] = tuple(f"T{i}" for i in range(1, 13)) + tuple(f"L{i}" for i in range(1, 6)) + ("S1",)
+_LEVEL = re.compile(r"^(T(?:[1-9]|1[0-2])|L[1-5])-(T(?:[1-9]|1[0-2])|L[1-5]|S1)$")
+_ROM_QUANTITIES = ("rom", "rom_full")
+
+
+def lumbar_total_rom(table: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Range of motion of the whole L1-L5 span (deg; ``rom`` one side, ``rom_full`` both directions): in-vitro
+    medians and ranges (``median``/``min``/``max``) and FE-model summaries (``model_*``). Empty while Dreischarf
+    et al. 2014's figures are in the gaps list; its average median differences (``rom_median_difference``) are
+    not ROM and stay out. `table` defaults to `load_validation_references()`."""
+    table = _references(table)
+    rows = table[(table["level"] == "L1-L5") & table["quantity"].isin(_ROM_QUANTITIES)]
+    return _tidy(rows)
+
+
+def intradiscal_pressure(level: str | None = None, table: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Nucleus pressure (MPa) at one level (``"L4-L5"``) or every level (None): in vitro under the stated moment
+    and preload, and in vivo per posture (moment and preload empty). An unknown level gives an empty frame; a
+    malformed one is an error naming it."""
+    table = _references(table)
+    rows = table[table["quantity"] == "intradiscal_pressure"]
+    if level is not None:
+        rows = rows[rows["level"] == _checked_level(level)]
+    return _tidy(rows)
+
+
+def facet_forces(level: str | None = None, table: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Facet joint contact forces (N) with a ``facet`` column (`FACET_SIDES`): ipsilateral / contralateral where
+    the source names the side relative to the bending or rotation, both where it reports the pair's sum,
+    unspecified otherwise."""
+    table = _references(table)
+    rows = table[table["quantity"] == "facet_force"]
+    if level is not None:
+        rows = rows[rows["level"] == _checked_level(level)]
+    out = _tidy(rows)
+    out.insert(out.columns.get_loc("condition") + 1, "facet", facet_side(out["condition"]))
+    return out
+
+
+def remus_segmental_rom(table: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Remus et al. 2021's predicted ROM (deg) per segment L1-L2 ... L5-S1 of their hybrid model on the same
+    Visible Human geometry: the model-to-model comparison. Empty while the article's figures and tables are in the
+    gaps list."""
+    table = _references(table)
+    segment = table["level"].isin([f"{a}-{b}" for a, b in zip(VERTEBRAE[12:], VERTEBRAE[13:])])
+    rows = table[(table["source"] == REMUS_SOURCE) & table["quantity"].isin(_ROM_QUANTITIES) & segment]
+    return _tidy(rows)
+
+
+def facet_side(condition: pd.Series) -> np.ndarray:
+    """`FACET_SIDES` label per condition text: the words ipsilateral / contralateral, "both facets" or "sum"
+    (case-insensitive), else unspecified."""
+    text = condition.fillna("").astype(str).str.lower()
+    return np.select(
+        [
+            text.str.contains(r"\bipsilateral\b"),
+            text.str.contains(r"\bcontralateral\b"),
+            text.str.contains(r"\bboth facets\b|\bsum of\b"),
+        ],
+        ["ipsilateral", "contralateral", "both"],
+        default="unspecified",
+    )
+
+
+def level_order(levels: pd.Series) -> np.ndarray:
+    """Sort key cranial to caudal (T1-T2 first, L5-S1 last; spans after the segment they start with); levels not
+    of the form ``T1-T2`` sort last."""
+    rank = {v: i for i, v in enumerate(VERTEBRAE)}
+    parts = levels.astype(str).str.split("-", n=1, expand=True).reindex(columns=[0, 1])
+    top = parts[0].map(rank).fillna(len(VERTEBRAE)).to_numpy()
+    bottom = parts[1].map(rank).fillna(len(VERTEBRAE)).to_numpy()
+    return top * (len(VERTEBRAE) + 1) + bottom
+
+
+def _checked_level(level: str) -> str:
+    if not _LEVEL.match(level):
+        raise ValueError(f"level {level!r} is not of the form 'L4-L5' (T1..T12, L1..L5, S1 joined by '-')")
+    return level
+
+
+def _references(table: pd.DataFrame | None) -> pd.DataFrame:
+    return load_validation_references() if table is None else table
+
+
+def _tidy(rows: pd.DataFrame) -> pd.DataFrame:
+    """`ACCESSOR_COLUMNS` of `rows` (missing ones empty), value as float, sorted by level, motion, source,
+    condition, statistic; the same columns and dtypes when there is no row."""
+    out = rows.reindex(columns=list(ACCESSOR_COLUMNS)).copy()
+    out["value"] = out["value"].astype(float)
+    for col in ("moment_nmm", "preload_n", "n"):
+        out[col] = pd.to_numeric(out[col], errors="coerce").astype(float)
+    out = out.assign(_order=level_order(out["level"]))
+    out = out.sort_values(["_order", "motion", "source", "condition", "statistic"], kind="stable")
+    return out.drop(columns="_order").reset_index(drop=True)
