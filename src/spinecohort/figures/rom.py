@@ -140,7 +140,8 @@ LOAD_CASE_ORDER = ("flexion", "extension", "lateral_left", "lateral_right", "axi
 def loads_figure(idp: pd.DataFrame, facets: pd.DataFrame, path: str | Path, title: str = "") -> Path:
     """The lumbar model's nucleus pressure per disc and load case (top) and its facet force per joint, load case
     and side (bottom: left solid, right hatched; contact struts and extension stop added), from `spinecohort.rom.run.solve_model_loads`'s
-    tables; a case short of the full moment drawn pale."""
+    tables (the functional units when the run has no lumbar model); a case short of the full moment drawn pale."""
+    mode = "lumbar" if (idp["mode"] == "lumbar").any() else "unit"
     fig, axes = plt.subplots(2, 1, figsize=(10, 7))
     colors = dict(zip(LOAD_CASE_ORDER, plt.get_cmap("tab10").colors))
     width = 0.8 / len(LOAD_CASE_ORDER)
@@ -148,7 +149,7 @@ def loads_figure(idp: pd.DataFrame, facets: pd.DataFrame, path: str | Path, titl
         (axes[0], idp, "disc", "pressure_mpa", "nucleus pressure (MPa)"),
         (axes[1], _joint_totals(facets), "joint", "force_n", "facet force (N)"),
     ):
-        t = t[(t["mode"] == "lumbar") & (t["variant"] == "intact")] if len(t) else t
+        t = t[(t["mode"] == mode) & (t["variant"] == "intact")] if len(t) else t
         levels = list(dict.fromkeys(t[index])) if len(t) else []
         x = np.arange(len(levels))
         for k, case in enumerate(LOAD_CASE_ORDER):
@@ -167,7 +168,8 @@ def loads_figure(idp: pd.DataFrame, facets: pd.DataFrame, path: str | Path, titl
         ax.set_ylabel(label)
         ax.axhline(0.0, color="k", lw=0.6)
     axes[0].legend(fontsize=7, ncol=3)
-    axes[0].set_title(f"{title} lumbar model (pelvis..T10), 7.5 N·m pure moments".strip())
+    where = "lumbar model (pelvis..T10)" if mode == "lumbar" else "functional units"
+    axes[0].set_title(f"{title} {where}, pure moments".strip())
     axes[1].set_title("facet joints, contact strut + extension stop: left (solid), right (hatched)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

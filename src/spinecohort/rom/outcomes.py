@@ -9,7 +9,8 @@ or a mean without its SD) is reported beside ours, not judged.  Only references 
 compared: the same pure moment and no preload.  Without a reference our value is reported with the verdict
 "no reference obtained".
 
-Our values come from the lumbar model, intact (`spinecohort.rom.run.solve_model_loads`):
+Our values come from the lumbar model, intact (`spinecohort.rom.run.solve_model_loads`; from the functional units
+when a run has no lumbar model):
 
 * nucleus pressure (MPa) per disc and motion: flexion, extension, and the mean of both sides of lateral bending
   and of axial rotation;
@@ -105,24 +106,24 @@ def compared_level(level: str) -> str:
     return level
 
 
-def _full_load(table: pd.DataFrame) -> pd.DataFrame:
-    """The lumbar model's intact rows, a case short of the full moment dropped."""
-    t = table[(table["mode"] == "lumbar") & (table["variant"] == "intact")]
+def _full_load(table: pd.DataFrame, mode: str) -> pd.DataFrame:
+    """The intact rows of extraction `mode`, a case short of the full moment dropped."""
+    t = table[(table["mode"] == mode) & (table["variant"] == "intact")]
     return t[t["load_fraction"] >= 1.0 - 1e-6] if "load_fraction" in t else t
 
 
-def idp_value(idp: pd.DataFrame, level: str, motion: str, facet: str = "") -> float:
+def idp_value(idp: pd.DataFrame, level: str, motion: str, facet: str = "", mode: str = "lumbar") -> float:
     """Nucleus pressure (MPa) of disc `level` in `motion` (mean over its load cases; NaN if one is missing)."""
-    t = _full_load(idp)
+    t = _full_load(idp, mode)
     by_case = dict(zip(t.loc[t["disc"] == level, "load_case"], t.loc[t["disc"] == level, "pressure_mpa"]))
     vals = [by_case.get(c, np.nan) for c in CASES.get(motion, ())]
     return float(np.mean(vals)) if vals else np.nan
 
 
-def facet_value(facets: pd.DataFrame, level: str, motion: str, facet: str = "") -> float:
+def facet_value(facets: pd.DataFrame, level: str, motion: str, facet: str = "", mode: str = "lumbar") -> float:
     """Contact force (N) of joint `level` in `motion` on `facet` (see the module docstring): '' = mean of both
     joints, 'ipsilateral' / 'contralateral' relative to each one-sided case, 'left' / 'right' by side."""
-    t = _full_load(facets)
+    t = _full_load(facets, mode)
     t = t[t["joint"] == level].groupby(["load_case", "side"])["force_n"].sum(min_count=1)
     force = t.to_dict()
     vals = []
@@ -140,20 +141,16 @@ def facet_value(facets: pd.DataFrame, level: str, motion: str, facet: str = "") 
     return float(np.mean(vals)) if vals else np.nan
 
 
-def rom_value(table: pd.DataFrame, level: str, motion: str, side: str) -> float:
+def rom_value(table: pd.DataFrame, level: str, motion: str, side: str, mode: str = "lumbar") -> float:
     """ROM (deg) of segment `level` or of the span L1-L5 (the sum of its segments per load case), in the
     convention `side` ('one': one direction, both sides' mean; 'full': both directions added)."""
-    t = _full_load(table)
+    t = _full_load(table, mode)
     if level == "L1-L5":
         seg = t[t["segment"].isin(L1_L5)]
         if seg.groupby("load_case")["segment"].nunique().lt(len(L1_L5)).any():
             return np.nan
-        t = (
-            seg.groupby("load_case", as_index=False)["rom_deg"]
-            .sum()
-            .assign(segment=level, mode="lumbar", variant="intact")
-        )
-    return model_value_deg(t, level, motion, side, "lumbar")
+        t = seg.groupby("load_case", as_index=False)["rom_deg"].sum().assign(segment=level, mode=mode, variant="intact")
+    return model_value_deg(t, level, motion, side, mode)
 
 
 def _judge(ours: float, ref: dict | None) -> str:
@@ -200,10 +197,10 @@ def compare_quantity(quantity: str, keys: list[tuple], value, refs: pd.DataFrame
     return pd.DataFrame(rows, columns=COLUMNS)
 
 
-def ordering_rows(table: pd.DataFrame) -> pd.DataFrame:
+def ordering_rows(table: pd.DataFrame, mode: str = "lumbar") -> pd.DataFrame:
     """The physiological orderings of every lumbar segment of the lumbar model (`spinecohort.rom.compare.orderings`)
     as judged rows: flexion > extension and axial rotation < lateral bending (one side, deg)."""
-    order = orderings(table[table["variant"] == "intact"], mode="lumbar")
+    order = orderings(table[table["variant"] == "intact"], mode=mode)
     rows = []
     src = "Niosi et al. 2006 Eur Spine J 15:913 (L3-L4, intact)"
     for o in order.to_dict("records"):
@@ -232,6 +229,11 @@ def ordering_rows(table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=COLUMNS)
 
 
+def extraction(table: pd.DataFrame) -> str:
+    """The extraction the outcomes come from: the lumbar model if the run has one, else the functional units."""
+    return "lumbar" if (table["mode"] == "lumbar").any() else "unit"
+
+
 def outcomes(
     table: pd.DataFrame,
     idp: pd.DataFrame,
@@ -243,17 +245,18 @@ def outcomes(
     """Every outcome row (`COLUMNS`) of the lumbar model: nucleus pressure of each lumbar disc, facet force of each
     joint, L1-L5 total ROM, segmental ROM L1-S1 beside the same-geometry model, then the orderings.
     references: quantity of `QUANTITIES` -> long reference table (`spinecohort.rom.reference_rows`)."""
-    discs = sorted({d for d in idp.loc[idp["mode"] == "lumbar", "disc"] if d.startswith("L")}) if len(idp) else []
-    joints = facets.loc[facets["mode"] == "lumbar", "joint"].drop_duplicates().tolist() if len(facets) else []
+    mode = extraction(table)
+    discs = sorted({d for d in idp.loc[idp["mode"] == mode, "disc"] if d.startswith("L")}) if len(idp) else []
+    joints = facets.loc[facets["mode"] == mode, "joint"].drop_duplicates().tolist() if len(facets) else []
     segs = [s for s in ("L1-L2", "L2-L3", "L3-L4", "L4-L5", "L5-S1") if (table["segment"] == s).any()]
     facet_keys = [("flexion", ""), ("extension", "")] + [
         (m, f) for m in ("lateral_bending", "axial_rotation") for f in ("ipsilateral", "contralateral")
     ]
     spec = {
-        "intradiscal_pressure": ([(d, m, "", "") for d in discs for m in MOTIONS], lambda lv, m, f, s: idp_value(idp, lv, m, f)),
-        "facet_force": ([(j, m, f, "") for j in joints for m, f in facet_keys], lambda lv, m, f, s: facet_value(facets, lv, m, f)),
-        "lumbar_total_rom": ([("L1-L5", m, "", "one") for m in MOTIONS], lambda lv, m, f, s: rom_value(table, lv, m, s)),
-        "segmental_rom_same_geometry": ([(g, m, "", "one") for g in segs for m in MOTIONS], lambda lv, m, f, s: rom_value(table, lv, m, s)),
+        "intradiscal_pressure": ([(d, m, "", "") for d in discs for m in MOTIONS], lambda lv, m, f, s: idp_value(idp, lv, m, f, mode)),
+        "facet_force": ([(j, m, f, "") for j in joints for m, f in facet_keys], lambda lv, m, f, s: facet_value(facets, lv, m, f, mode)),
+        "lumbar_total_rom": ([("L1-L5", m, "", "one") for m in MOTIONS], lambda lv, m, f, s: rom_value(table, lv, m, s, mode)),
+        "segmental_rom_same_geometry": ([(g, m, "", "one") for g in segs for m in MOTIONS], lambda lv, m, f, s: rom_value(table, lv, m, s, mode)),
     }  # fmt: skip
     parts = []
     for quantity, (keys, value) in spec.items():
@@ -262,17 +265,17 @@ def outcomes(
             refs = refs[refs["quantity"].isin(QUANTITIES[quantity][1])]
         refs = reference_intervals(refs, moment_nmm, acceptance_sd)
         parts.append(compare_quantity(quantity, keys, value, refs))
-    parts.append(ordering_rows(table))
+    parts.append(ordering_rows(table, mode))
     return pd.concat([p for p in parts if len(p)], ignore_index=True)
 
 
 #: section headings of the outcome table's Markdown, by quantity
 HEADINGS = {
-    "intradiscal_pressure": "Intradiscal pressure (nucleus, lumbar model)",
-    "facet_force": "Facet joint forces (contact struts, lumbar model)",
+    "intradiscal_pressure": "Intradiscal pressure (nucleus)",
+    "facet_force": "Facet joint forces (contact struts and extension stops)",
     "lumbar_total_rom": "L1–L5 total range of motion",
     "segmental_rom_same_geometry": "Segmental ROM L1–S1 beside the same-geometry model (Remus et al. 2021)",
-    "ordering": "Physiological orderings (lumbar model)",
+    "ordering": "Physiological orderings",
 }
 
 
@@ -282,8 +285,9 @@ def _cell(v, fmt: str = ".2f") -> str:
 
 def outcomes_markdown(out: pd.DataFrame, idp: pd.DataFrame, facets: pd.DataFrame) -> str:
     """The outcome table as Markdown sections (ours, reference, criterion, accepted, verdict, source) with a count
-    of what was judged, and the per-case nucleus pressures and facet forces of the lumbar model."""
-    lines = []
+    of what was judged, and the per-case nucleus pressures and facet forces (of the lumbar model, else the units)."""
+    mode = extraction(idp) if len(idp) else "lumbar"
+    lines = [f"Beyond ROM, from the {'lumbar model' if mode == 'lumbar' else 'functional units'}, intact.", ""]
     for quantity, heading in HEADINGS.items():
         sub = out[out["quantity"] == quantity]
         if not len(sub):
@@ -293,6 +297,7 @@ def outcomes_markdown(out: pd.DataFrame, idp: pd.DataFrame, facets: pd.DataFrame
                   "verdict | source |", "|---|---|---|--:|---|---|---|---|---|"]  # fmt: skip
         for r in sub.itertuples():
             acc = f"{_cell(r.accept_low)}–{_cell(r.accept_high)}" if np.isfinite(r.accept_low) else "—"
+            acc = f"> {_cell(r.accept_low)}" if np.isinf(r.accept_high) else acc
             level = r.level if not r.ref_level or r.ref_level == r.level else f"{r.level} (ref. {r.ref_level})"
             lines.append(
                 f"| {level} | {r.motion} | {r.facet or '—'} | {_cell(r.ours)} | {r.reference or '—'} | "
@@ -303,17 +308,33 @@ def outcomes_markdown(out: pd.DataFrame, idp: pd.DataFrame, facets: pd.DataFrame
                   f"{int((sub['verdict'] == 'no reference obtained').sum())} without a reference, "
                   f"{int((sub['verdict'] == 'not judged').sum())} reported, not judged.", ""]  # fmt: skip
         if quantity == "intradiscal_pressure" and len(idp):
-            lines += ["Nucleus pressure per load case (MPa):", "", _pivot_md(idp, "disc", "pressure_mpa", "{:.3f}"), ""]
+            lines += [
+                "Nucleus pressure per load case (MPa):",
+                "",
+                _pivot_md(idp, mode, "disc", "pressure_mpa", "{:.3f}"),
+                "",
+            ]
         if quantity == "facet_force" and len(facets):
-            f = facets.assign(col=facets["load_case"] + " " + facets["kind"] + " " + facets["side"])
-            lines += ["Facet force per load case (N; joint = contact strut, tip = extension stop; L/R = left/right):",
-                      "", _pivot_md(f, "joint", "force_n", "{:.1f}"), ""]  # fmt: skip
+            lines += ["Facet force per load case (N, contact struts + extension stop; L/R = left/right joint):", "",
+                      _facet_md(facets, mode), ""]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
-def _pivot_md(t: pd.DataFrame, index: str, value: str, fmt: str) -> str:
-    """A lumbar-model per-case table as Markdown: rows `index`, columns the load cases (or `col`)."""
-    t = t[(t["mode"] == "lumbar") & (t["variant"] == "intact")]
+def _facet_md(facets: pd.DataFrame, mode: str) -> str:
+    """The per-case facet forces as Markdown: one row per joint side, '<contact> + <stop>' per load case (N)."""
+    f = facets[(facets["mode"] == mode) & (facets["variant"] == "intact")]
+    wide = f.pivot_table(index=["joint", "side"], columns=["load_case", "kind"], values="force_n", sort=False)
+    cases = list(dict.fromkeys(f["load_case"]))
+    rows = ["| joint | side | " + " | ".join(cases) + " |", "|---|---|" + "--:|" * len(cases)]
+    for (joint, side), r in wide.iterrows():
+        cells = [" + ".join(f"{r.get((c, k), np.nan):.1f}" for k in ("joint", "tip") if (c, k) in r) for c in cases]
+        rows.append(f"| {joint} | {side} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def _pivot_md(t: pd.DataFrame, mode: str, index: str, value: str, fmt: str) -> str:
+    """A per-case table of extraction `mode` as Markdown: rows `index`, columns the load cases (or `col`)."""
+    t = t[(t["mode"] == mode) & (t["variant"] == "intact")]
     col = "col" if "col" in t else "load_case"
     wide = t.pivot_table(index=index, columns=col, values=value, aggfunc="first", sort=False)
     head = "| " + index + " | " + " | ".join(map(str, wide.columns)) + " |"
