@@ -150,7 +150,7 @@ def loads_figure(idp: pd.DataFrame, facets: pd.DataFrame, path: str | Path, titl
         (axes[1], _joint_totals(facets), "joint", "force_n", "facet force (N)"),
     ):
         t = t[(t["mode"] == mode) & (t["variant"] == "intact")] if len(t) else t
-        levels = list(dict.fromkeys(t[index])) if len(t) else []
+        levels = sorted(set(t[index]), key=_segment_order) if len(t) else []
         x = np.arange(len(levels))
         for k, case in enumerate(LOAD_CASE_ORDER):
             c = t[t["load_case"] == case]
@@ -187,3 +187,10 @@ def _joint_totals(facets: pd.DataFrame) -> pd.DataFrame:
         .agg(force_n=("force_n", "sum"), load_fraction=("load_fraction", "min"))
         .reset_index()
     )
+
+
+def _segment_order(level: str) -> int:
+    """Cranial first: the index of a segment's upper vertebra in the column T1 .. S1."""
+    from spinecohort.rom.submodel import COLUMN
+
+    return COLUMN.index(level.split("-")[0])

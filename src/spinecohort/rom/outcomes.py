@@ -223,7 +223,7 @@ def ordering_rows(table: pd.DataFrame, mode: str = "lumbar") -> pd.DataFrame:
                     "accept_high": np.inf,
                     "verdict": ("yes" if ok else "no") if np.isfinite(diff) else "not judged",
                     "source": src,
-                    "ref_level": "L3-L4",
+                    "ref_level": "",
                 }  # fmt: skip
             )
     return pd.DataFrame(rows, columns=COLUMNS)
@@ -320,11 +320,17 @@ def outcomes_markdown(out: pd.DataFrame, idp: pd.DataFrame, facets: pd.DataFrame
     return "\n".join(lines) + "\n"
 
 
+def _case_order(cases) -> list[str]:
+    """The load cases present, flexion first (`CASES`' order)."""
+    order = [c for cases_of in CASES.values() for c in cases_of]
+    return sorted(set(cases), key=lambda c: order.index(c) if c in order else len(order))
+
+
 def _facet_md(facets: pd.DataFrame, mode: str) -> str:
     """The per-case facet forces as Markdown: one row per joint side, '<contact> + <stop>' per load case (N)."""
     f = facets[(facets["mode"] == mode) & (facets["variant"] == "intact")]
     wide = f.pivot_table(index=["joint", "side"], columns=["load_case", "kind"], values="force_n", sort=False)
-    cases = list(dict.fromkeys(f["load_case"]))
+    cases = _case_order(f["load_case"])
     rows = ["| joint | side | " + " | ".join(cases) + " |", "|---|---|" + "--:|" * len(cases)]
     for (joint, side), r in wide.iterrows():
         cells = [" + ".join(f"{r.get((c, k), np.nan):.1f}" for k in ("joint", "tip") if (c, k) in r) for c in cases]
@@ -333,10 +339,10 @@ def _facet_md(facets: pd.DataFrame, mode: str) -> str:
 
 
 def _pivot_md(t: pd.DataFrame, mode: str, index: str, value: str, fmt: str) -> str:
-    """A per-case table of extraction `mode` as Markdown: rows `index`, columns the load cases (or `col`)."""
+    """A per-case table of extraction `mode` as Markdown: rows `index`, columns the load cases."""
     t = t[(t["mode"] == mode) & (t["variant"] == "intact")]
-    col = "col" if "col" in t else "load_case"
-    wide = t.pivot_table(index=index, columns=col, values=value, aggfunc="first", sort=False)
+    wide = t.pivot_table(index=index, columns="load_case", values=value, aggfunc="first", sort=False)
+    wide = wide.loc[sorted(wide.index, key=lambda lv: COLUMN.index(lv.split("-")[0])), _case_order(wide.columns)]
     head = "| " + index + " | " + " | ".join(map(str, wide.columns)) + " |"
     rows = [head, "|---|" + "--:|" * len(wide.columns)]
     for k, r in wide.iterrows():
