@@ -21,9 +21,10 @@ with to_file(snakemake.log[0]) as log:
         snakemake.output.runs,
         snakemake.wildcards.model_id,
         materials_from_config(snakemake.params.fe),
+        load_prints="idp" in snakemake.output.keys(),  # the mode study's rule keeps the ROM only
     )
     table.to_csv(snakemake.output.table, index=False)
-    if "idp" in snakemake.output.keys():  # the mode study's rule keeps the ROM only
+    if "idp" in snakemake.output.keys():
         idp.to_csv(snakemake.output.idp, index=False)
         facets.to_csv(snakemake.output.facets, index=False)
     log.info("ROM (deg):\n%s", table[["mode", "variant", "segment", "load_case", "rom_deg", "solve_s"]].to_string())
