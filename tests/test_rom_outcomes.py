@@ -78,9 +78,15 @@ def test_each_kind_of_reference_gets_its_criterion_and_other_loadings_are_left_o
         + ref("L4-L5", "flexion", "rom", {"single": 5.0}, source="Remus")
         + ref("L1-L5", "flexion", "rom", {"mean": 99.0, "sd": 1.0}, preload=400.0)  # a follower load: not ours
         + ref("L1-L5", "flexion", "rom", {"mean": 99.0, "sd": 1.0}, moment=10000.0)  # another moment
+        + ref("L5-S1", "flexion", "rom", {"mean": 6.0, "sd": 2.0}, moment=np.nan, source="unstated")
+        + ref("L4-L5", "standing_relaxed", "intradiscal_pressure", {"single": 0.5}, moment=np.nan, unit="MPa")
     )
     got = reference_intervals(refs, 7500.0, 1.0).set_index(["level", "motion", "source"])
-    assert len(got) == 4
+    assert len(got) == 5  # the posture (in vivo) is not a load direction: left out
+    # a moment the source does not state: the mean shown beside ours, never judged
+    unstated = got.loc[("L5-S1", "flexion", "unstated")]
+    assert not unstated["judged"] and unstated["reference"] == "6 (mean)"
+    assert unstated["criterion"] == "moment not stated: reported, not judged"
     assert got.loc[("L1-L5", "flexion", "S"), ["accept_low", "accept_high"]].tolist() == [15.0, 30.0]
     assert got.loc[("L1-L5", "flexion", "S"), "reference"] == "20 (15–30)"
     assert got.loc[("L3-L4", "extension", "S"), ["accept_low", "accept_high"]].tolist() == pytest.approx([1.8, 4.8])
@@ -157,8 +163,11 @@ def test_packaged_references_are_read_by_quantity():
     f = reference_rows.facet_forces()
     ar = f[(f["level"] == "T12-L2") & (f["motion"] == "axial_rotation") & (f["statistic"] == "mean")]
     assert dict(zip(ar["facet"], ar["value"])) == {"ipsilateral": 31.3, "contralateral": 70.3}
-    judged = reference_intervals(f, 7500.0, 1.0)
-    assert len(judged) == 6  # flexion, extension, two sides of axial rotation and of lateral bending; no 400 N rows
+    got = reference_intervals(f, 7500.0, 1.0)
+    # judged: flexion, extension, two sides of axial rotation and of lateral bending; no 400 N rows; the L1-L5 FE
+    # model's 117 N at L4-L5 under an imposed 20 deg extension (no moment stated) is shown, not judged
+    assert got["judged"].sum() == 6 and len(got) == 7
+    assert got.loc[~got["judged"], ["level", "reference"]].values.tolist() == [["L4-L5", "117 (single)"]]
     # the only nucleus pressures obtained are in vivo (Wilke et al. 1999, postures): none under a pure moment
     assert len(reference_rows.intradiscal_pressure("L4-L5")) > 0
     assert reference_intervals(reference_rows.intradiscal_pressure("L4-L5"), 7500.0, 1.0).empty

@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from spinecohort.rom.compare import model_value_deg, orderings
+from spinecohort.rom.references import LOAD_DIRECTIONS
 from spinecohort.rom.submodel import COLUMN
 
 MOTIONS = ("flexion", "extension", "lateral_bending", "axial_rotation")
@@ -62,7 +63,8 @@ QUANTITIES = {
 
 
 def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: float) -> pd.DataFrame:
-    """One row per reference of the long table `refs` under the run's loading (moment `moment_nmm`, no preload):
+    """One row per reference of the long table `refs` under the run's loading: a load direction (not an in-vivo
+    posture), no preload and the moment `moment_nmm`, or an unstated moment (then reported, not judged).  Columns:
     its key (source, level, motion, quantity, facet, condition, unit), the reference as text, the criterion, the
     accepted interval and whether it is judged (see the module docstring)."""
     cols = ["source", "level", "motion", "quantity", "facet", "condition", "unit"]
@@ -72,14 +74,21 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
     r = refs.assign(**{c: refs[c] if c in refs else "" for c in ("facet", "condition")})
     moment = pd.to_numeric(r.get("moment_nmm", np.nan), errors="coerce")
     preload = pd.to_numeric(r.get("preload_n", np.nan), errors="coerce").fillna(0.0)
-    r = r[np.isclose(moment, moment_nmm) & (preload == 0.0)]
+    keep = (np.isclose(moment, moment_nmm) | moment.isna()) & (preload == 0.0) & r["motion"].isin(LOAD_DIRECTIONS)
+    r = r[keep].assign(unstated=moment[keep].isna())
     if not len(r):
         return pd.DataFrame(columns=out_cols)
     r = r.assign(facet=r["facet"].fillna(""), condition=r["condition"].fillna(""))
+    unstated = r.groupby(cols)["unstated"].any()
     wide = r.pivot_table(index=cols, columns="statistic", values="value", aggfunc="first").reset_index()
     rows = []
     for w in wide.to_dict("records"):
         has = {k for k, v in w.items() if k not in cols and np.isfinite(v)}
+        hidden = bool(unstated[tuple(w[c] for c in cols)])
+        if hidden:  # the moment is not stated: shown beside ours, never judged
+            has -= {"sd", "min", "max", "low", "high"}
+        if not has:
+            continue
         if {"median", "min", "max"} <= has:
             lo, hi, text = w["min"], w["max"], f"{w['median']:g} ({w['min']:g}–{w['max']:g})"
             crit = "median; inside its min–max"
@@ -92,7 +101,8 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
         else:
             stat = sorted(has)[0]
             lo = hi = np.nan
-            text, crit = f"{w[stat]:g} ({stat})", "one value: reported, not judged"
+            text = f"{w[stat]:g} ({stat})"
+            crit = "moment not stated: reported, not judged" if hidden else "one value: reported, not judged"
         rows.append({**{c: w[c] for c in cols}, "reference": text, "criterion": crit, "accept_low": lo,
                      "accept_high": hi, "judged": bool(np.isfinite(lo))})  # fmt: skip
     return pd.DataFrame(rows, columns=out_cols)
@@ -190,7 +200,9 @@ def compare_quantity(quantity: str, keys: list[tuple], value, refs: pd.DataFrame
                     "accept_low": ref["accept_low"] if ref else np.nan,
                     "accept_high": ref["accept_high"] if ref else np.nan,
                     "verdict": _judge(ours, ref),
-                    "source": ref["source"] if ref else "",
+                    "source": (f"{ref['source']} ({ref['condition']})" if ref["condition"] else ref["source"])
+                    if ref
+                    else "",
                     "ref_level": ref["level"] if ref else "",
                 }
             )
