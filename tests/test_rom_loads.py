@@ -118,3 +118,24 @@ def test_struts_are_summed_by_joint_from_their_set_names_one_or_several_a_joint(
     # no print at the time asked: unknown, not zero
     assert facet_forces(fe, [block], 0.5)["force_n"].isna().all()
     assert isinstance(facet_forces(FEModel(nodes, {}), [block], 1.0), pd.DataFrame)
+
+
+@needs_ccx
+def test_a_unit_presses_its_nucleus_in_flexion_and_its_contralateral_facet_in_axial_rotation(template, tmp_path):
+    # Physics of the test-config mean's L3-L4 unit under 7.5 N.m (two nonlinear cases, ~10 s each): flexion
+    # squeezes the disc's front and opens the facet joints behind it (no contact force, nucleus pressure up);
+    # left axial rotation swings the posterior arch to the right, pressing the right (contralateral) inferior
+    # articular process onto the superior one below, the left joint carrying nothing (Jaumard et al. 2011,
+    # T12-L2: contralateral 70 N > ipsilateral 31 N)
+    from spinecohort.fe.facets import FacetContact
+    from spinecohort.rom.run import Settings, run_case
+    from spinecohort.rom.submodel import extract_rom_model
+
+    m = extract_rom_model(template, template.nodes, "L3", "L4", facets=FacetContact())
+    flex = run_case(m, "flexion", tmp_path, **Settings().deck_kw())
+    turn = run_case(m, "axial_left", tmp_path, **Settings().deck_kw())
+    assert flex.load_fraction == 1.0 and turn.load_fraction == 1.0
+    assert flex.idp["disc"].tolist() == ["L3-L4"] and flex.idp["pressure_mpa"].iloc[0] > 0.05
+    assert (flex.facets["force_n"] == 0.0).all()
+    f = turn.facets.set_index(["side", "kind"])["force_n"]
+    assert f["R", "joint"] > 50.0 and f["L", "joint"] == 0.0
