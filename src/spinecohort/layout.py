@@ -215,6 +215,23 @@ class Layout:
     def rom_dir(self, model_id: str) -> str:
         return self.path("rom", model_id)
 
+    def rom_idp_table(self, model_id: str) -> str:
+        """One model's nucleus pressure per disc and load case (`spinecohort.rom.loads`)."""
+        return self.path("rom", f"{model_id}_idp.csv")
+
+    def rom_facet_table(self, model_id: str) -> str:
+        """One model's facet contact force per joint side and load case (`spinecohort.rom.loads`)."""
+        return self.path("rom", f"{model_id}_facets.csv")
+
+    @property
+    def rom_outcomes(self) -> str:
+        """Nucleus pressures, facet forces, L1-L5 and same-geometry ROM, orderings against references."""
+        return self.path("rom", "validation_extended.csv")
+
+    @property
+    def rom_loads_png(self) -> str:
+        return self.path("rom", "validation_loads.png")
+
     @property
     def rom_validation(self) -> str:
         return self.path("rom", "validation.csv")

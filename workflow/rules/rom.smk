@@ -1,5 +1,6 @@
 # Stage 9: FE validation. Range of motion of one model under pure moments in CalculiX (lumbar model
-# pelvis..T10 and thoracic functional units), compared with in-vitro data (docs/explanation/validation.md); the sensitivity of
+# pelvis..T10 and thoracic functional units), compared with in-vitro data, and its nucleus pressures, facet forces,
+# L1-L5 and same-geometry ROM against the packaged references (docs/explanation/validation.md); the sensitivity of
 # the compared ROM to the calibrated parameters; the ROM of the mean and of each shape mode at its extremes.
 from spinecohort.rom.modes import mode_models, mode_rom_config
 from spinecohort.rom.run import solver_config
@@ -11,6 +12,8 @@ rule rom_model:
         template=L.template,
     output:
         table=L.rom_table("{model_id}"),
+        idp=L.rom_idp_table("{model_id}"),
+        facets=L.rom_facet_table("{model_id}"),
         runs=directory(L.rom_dir("{model_id}")),
     log:
         f"{LOGS}/rom_model/{{model_id}}.log",
@@ -31,13 +34,17 @@ rule rom_model:
 
 rule rom_validation:
     input:
-        L.rom_table(config["rom"]["model"]),
+        table=L.rom_table(config["rom"]["model"]),
+        idp=L.rom_idp_table(config["rom"]["model"]),
+        facets=L.rom_facet_table(config["rom"]["model"]),
     output:
         table=L.rom_validation,
         all_effect=L.rom_all_effect,
         orderings=L.rom_orderings,
         markdown=L.rom_validation_md,
         figure=L.rom_validation_png,
+        outcomes=L.rom_outcomes,
+        loads_figure=L.rom_loads_png,
     log:
         f"{LOGS}/rom_validation.log",
     benchmark:

@@ -131,3 +131,66 @@ def rom_sensitivity_figure(sens: pd.DataFrame, path: str | Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+#: the load cases in the order the loads figure draws them
+LOAD_CASE_ORDER = ("flexion", "extension", "lateral_left", "lateral_right", "axial_left", "axial_right")
+
+
+def loads_figure(idp: pd.DataFrame, facets: pd.DataFrame, path: str | Path, title: str = "") -> Path:
+    """The lumbar model's nucleus pressure per disc and load case (top) and its facet force per joint, load case
+    and side (bottom: left solid, right hatched; contact struts and extension stop added), from `spinecohort.rom.run.solve_model_loads`'s
+    tables (the functional units when the run has no lumbar model); a case short of the full moment drawn pale."""
+    mode = "lumbar" if (idp["mode"] == "lumbar").any() else "unit"
+    fig, axes = plt.subplots(2, 1, figsize=(10, 7))
+    colors = dict(zip(LOAD_CASE_ORDER, plt.get_cmap("tab10").colors))
+    width = 0.8 / len(LOAD_CASE_ORDER)
+    for ax, t, index, value, label in (
+        (axes[0], idp, "disc", "pressure_mpa", "nucleus pressure (MPa)"),
+        (axes[1], _joint_totals(facets), "joint", "force_n", "facet force (N)"),
+    ):
+        t = t[(t["mode"] == mode) & (t["variant"] == "intact")] if len(t) else t
+        levels = sorted(set(t[index]), key=_segment_order) if len(t) else []
+        x = np.arange(len(levels))
+        for k, case in enumerate(LOAD_CASE_ORDER):
+            c = t[t["load_case"] == case]
+            sides = (("L", "", 0.5), ("R", "///", 0.5)) if index == "joint" else ((None, "", 1.0),)
+            for j, (side, hatch, share) in enumerate(sides):
+                s = c if side is None else c[c["side"] == side]
+                y = s.set_index(index)[value].reindex(levels).to_numpy(dtype=float)
+                full = s.set_index(index)["load_fraction"].reindex(levels).fillna(0).to_numpy() >= 1 - 1e-6
+                xs = x - 0.4 + width * (k + j * share) + 0.5 * width * share
+                bars = ax.bar(xs, np.nan_to_num(y), width * share, color=colors[case], hatch=hatch, edgecolor="white",
+                              label=case.replace("_", " ") if j == 0 else None)  # fmt: skip
+                for b, f in zip(bars, full):
+                    b.set_alpha(1.0 if f else 0.35)
+        ax.set_xticks(x, levels)
+        ax.set_ylabel(label)
+        ax.axhline(0.0, color="k", lw=0.6)
+    axes[0].legend(fontsize=7, ncol=3)
+    where = "lumbar model (pelvis..T10)" if mode == "lumbar" else "functional units"
+    axes[0].set_title(f"{title} {where}, pure moments".strip())
+    axes[1].set_title("facet joints, contact strut + extension stop: left (solid), right (hatched)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)
+
+
+def _joint_totals(facets: pd.DataFrame) -> pd.DataFrame:
+    """Facet force per joint side and case, every kind of strut (contact, extension stop) added."""
+    if not len(facets):
+        return facets
+    keys = ["mode", "variant", "joint", "side", "load_case"]
+    return (
+        facets.groupby(keys, sort=False)
+        .agg(force_n=("force_n", "sum"), load_fraction=("load_fraction", "min"))
+        .reset_index()
+    )
+
+
+def _segment_order(level: str) -> int:
+    """Cranial first: the index of a segment's upper vertebra in the column T1 .. S1."""
+    from spinecohort.rom.submodel import COLUMN
+
+    return COLUMN.index(level.split("-")[0])

@@ -8,6 +8,7 @@ import numpy as np
 
 from spinecohort.fe.pure_moment import LOAD_CASES, pure_moment_text
 from spinecohort.fe.writers import model_to_inp_text
+from spinecohort.rom.loads import with_load_prints
 from spinecohort.rom.submodel import RomError, RomModel
 
 #: motion planes: the two load cases whose one-side ROMs add up to the full range of motion
@@ -38,17 +39,20 @@ def rom_deck_text(
     correction_tolerance: float = 0.01,
     load_nmm: np.ndarray | None = None,
     guided: bool = False,
+    load_prints: bool = True,
 ) -> str:
     """The complete ccx deck of one load case: model data, rigid bodies, fixation, one static step with
     the pure moment on the top's ROT NODE, node prints of every endplate node, the ROT NODE and the fixed
     nodes' reaction forces.  load_nmm: the ROT NODE's *CLOAD (3,) N.mm instead of the load case's moment
     vector (`spinecohort.rom.reaction.generalised_load`: the load that exerts that moment at a rotation).
-    guided: the top turns about the load's axis only (`pure_moment_text`), `run_case`'s last attempt."""
+    guided: the top turns about the load's axis only (`pure_moment_text`), `run_case`'s last attempt.
+    load_prints: also print what the nucleus pressures and facet forces are read from (`spinecohort.rom.loads`;
+    output only: the solution is the same)."""
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
     if model.top not in model.rigid_nodes:
         raise RomError(f"the top vertebra {model.top} has no rigid body to load")
-    return model_to_inp_text(model.fe, provenance=provenance) + pure_moment_text(
+    deck = model_to_inp_text(model.fe, provenance=provenance) + pure_moment_text(
         model.fe.nodes,
         model.rigid_nodes,
         model.top,
@@ -64,3 +68,4 @@ def rom_deck_text(
         correction_tolerance=correction_tolerance,
         guided=guided,
     )
+    return with_load_prints(deck, model.fe) if load_prints else deck

@@ -20,6 +20,7 @@ from spinecohort.fe.pure_moment import LOAD_CASES
 from spinecohort.mesh.template import HexTemplate
 from spinecohort.rom.deck import load_vector_nmm, rom_deck_text
 from spinecohort.rom.kinematics import segment_rotations_deg
+from spinecohort.rom.loads import facet_forces, nucleus_pressure
 from spinecohort.rom.reaction import generalised_load, reactions
 from spinecohort.rom.ribs import RIB_SEGMENTS, RibHeads
 from spinecohort.rom.submodel import (
@@ -66,6 +67,10 @@ class CaseResult:
     #: the moment (N.mm, global) that held a guided top's rotation on the load's axis: what the base carried
     #: beyond the load, across the axis (`guide_moment`); zero for a free top
     guide_nmm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    #: per disc: nucleus pressure (MPa), volume, elements at the last printed load (`spinecohort.rom.loads`)
+    idp: pd.DataFrame | None = None
+    #: per facet joint side and kind: contact force (N, compression positive) at the last printed load
+    facets: pd.DataFrame | None = None
 
 
 def run_case(
@@ -187,6 +192,8 @@ def run_case(
         np.asarray(target, dtype=np.float64),
         iteration,
         guide_moment(rf.carried_nmm(), target) if rf and kw.get("guided") else np.zeros(3),
+        nucleus_pressure(model.fe, res.node_prints, last.time),
+        facet_forces(model.fe, res.node_prints, last.time),
     )
 
 
@@ -372,18 +379,22 @@ def analyses(settings: Settings) -> list[tuple[str, str, str]]:
     return out
 
 
-def solve_model(
+def solve_model_loads(
     template: HexTemplate,
     points: np.ndarray,
     settings: Settings | dict,
     workdir: str | Path,
     model_id: str,
     materials: FEMaterials | None = None,
-) -> pd.DataFrame:
+    load_prints: bool = True,
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """ROM table of one model for every configured extraction and load case (plus extension without the
-    ALL if ``all_effect``).  settings: `Settings` or the config's ``rom:`` block.  Decks, ccx logs and .dat
+    ALL if ``all_effect``), and the nucleus pressure of every disc and the facet force of every joint side per
+    case (`spinecohort.rom.loads`; columns model, mode, variant, unit, then `CaseResult.idp` / `.facets`'s,
+    load_case, load_fraction).  settings: `Settings` or the config's ``rom:`` block.  Decks, ccx logs and .dat
     files stay in ``workdir/<mode>_<top><bottom>/``.  Load cases run in parallel, ``settings.threads``
-    single-threaded ccx processes at a time."""
+    single-threaded ccx processes at a time.  load_prints False: the decks print no nucleus stresses (a lumbar
+    case's .dat is ~10x larger with them: 11-16 MB against 1-1.6 MB) and the pressures and forces are NaN."""
     from concurrent.futures import ThreadPoolExecutor
 
     cfg = settings if isinstance(settings, Settings) else Settings.from_config(settings)
@@ -450,7 +461,7 @@ def solve_model(
             timeout_s=cfg.timeout_s,
             job=name,
             moment_iterations=cfg.moment_iterations,
-            **{**deck_kw, "guided": cfg.lumbar_guided and mode == "lumbar"},
+            **{**deck_kw, "guided": cfg.lumbar_guided and mode == "lumbar", "load_prints": load_prints},
         )
         log.info(
             "%s %s %s-%s %s (%s): %.1f s, %.0f MB, top rotation %.2f deg, %d increments; moment carried %s N.mm "
@@ -469,11 +480,23 @@ def solve_model(
             np.round(r.target_nmm, 1),
             np.round(r.reaction_force_n, 4),
         )
+        head = {"model": model_id, "mode": mode, "variant": variant, "unit": f"{model.top}-{model.vertebrae[-1]}"}
         table = rom_table(model, [r], model_id, mode)
         table.insert(2, "variant", variant)
-        table.insert(3, "unit", f"{model.top}-{model.vertebrae[-1]}")
-        return table
+        table.insert(3, "unit", head["unit"])
+        case = {"load_case": r.case, "load_fraction": r.load_fraction}
+        return table, *(t.assign(**case).pipe(_lead, head) for t in (r.idp, r.facets))
 
     with ThreadPoolExecutor(max_workers=max(1, int(cfg.threads))) as pool:
-        tables = list(pool.map(run, jobs))
-    return pd.concat(tables, ignore_index=True)
+        out = list(pool.map(run, jobs))
+    return tuple(pd.concat([o[k] for o in out], ignore_index=True) for k in range(3))
+
+
+def _lead(table: pd.DataFrame, columns: dict) -> pd.DataFrame:
+    """`table` with the constant `columns` first."""
+    return pd.concat([pd.DataFrame(columns, index=table.index), table], axis=1)
+
+
+def solve_model(*args, **kwargs) -> pd.DataFrame:
+    """The ROM table of `solve_model_loads` (same arguments), solved without the load prints."""
+    return solve_model_loads(*args, **{"load_prints": False, **kwargs})[0]
