@@ -1,4 +1,4 @@
-"""The validation beyond segmental ROM (`spinecohort.rom.outcomes`, `spinecohort.rom.reference_rows`): criteria per
+"""The validation beyond segmental ROM (`spinecohort.rom.outcomes`, `spinecohort.rom.references`): criteria per
 kind of reference, our values in each reference's convention, the verdicts; on small hand-made tables whose
 numbers are stated here."""
 
@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from spinecohort.rom import reference_rows
+from spinecohort.rom import references
 from spinecohort.rom.outcomes import (
     compared_level,
     facet_value,
@@ -160,7 +160,7 @@ def test_outcomes_judge_what_has_a_reference_and_report_the_rest():
 def test_packaged_references_are_read_by_quantity():
     # Jaumard et al. 2011 Table 2, T12-L2 in vitro at 7.5 N.m: axial rotation ipsilateral 31.3 +- 33.4 N and
     # contralateral 70.3 +- 43.2 N (jaumard2011.csv)
-    f = reference_rows.facet_forces()
+    f = references.facet_forces()
     ar = f[(f["level"] == "T12-L2") & (f["motion"] == "axial_rotation") & (f["statistic"] == "mean")]
     assert dict(zip(ar["facet"], ar["value"])) == {"ipsilateral": 31.3, "contralateral": 70.3}
     got = reference_intervals(f, 7500.0, 1.0)
@@ -169,5 +169,5 @@ def test_packaged_references_are_read_by_quantity():
     assert got["judged"].sum() == 6 and len(got) == 7
     assert got.loc[~got["judged"], ["level", "reference"]].values.tolist() == [["L4-L5", "117 (single)"]]
     # the only nucleus pressures obtained are in vivo (Wilke et al. 1999, postures): none under a pure moment
-    assert len(reference_rows.intradiscal_pressure("L4-L5")) > 0
-    assert reference_intervals(reference_rows.intradiscal_pressure("L4-L5"), 7500.0, 1.0).empty
+    assert len(references.intradiscal_pressure("L4-L5")) > 0
+    assert reference_intervals(references.intradiscal_pressure("L4-L5"), 7500.0, 1.0).empty

@@ -5,7 +5,7 @@ import pandas as pd
 
 from spinecohort.figures.rom import loads_figure, validation_figure
 from spinecohort.logs import to_file
-from spinecohort.rom import reference_rows
+from spinecohort.rom import references
 from spinecohort.rom.compare import all_effect, orderings, validate_from_config, validation_markdown
 from spinecohort.rom.outcomes import outcomes, outcomes_markdown
 
@@ -16,10 +16,10 @@ with to_file(snakemake.log[0]) as log:
     val = validate_from_config(table, rom)
     val.to_csv(snakemake.output.table, index=False)
     references = {
-        "intradiscal_pressure": reference_rows.intradiscal_pressure(),
-        "facet_force": reference_rows.facet_forces(),
-        "lumbar_total_rom": reference_rows.lumbar_total_rom(),
-        "segmental_rom_same_geometry": reference_rows.remus_segmental_rom(),
+        "intradiscal_pressure": references.intradiscal_pressure(),
+        "facet_force": references.facet_forces(),
+        "lumbar_total_rom": references.lumbar_total_rom(),
+        "segmental_rom_same_geometry": references.remus_segmental_rom(),
     }
     more = outcomes(table, idp, facets, references, rom["moment_nmm"], rom["acceptance_sd"])
     more.to_csv(snakemake.output.outcomes, index=False)

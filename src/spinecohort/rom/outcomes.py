@@ -78,7 +78,8 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
     r = r[keep].assign(unstated=moment[keep].isna())
     if not len(r):
         return pd.DataFrame(columns=out_cols)
-    r = r.assign(facet=r["facet"].fillna(""), condition=r["condition"].fillna(""))
+    # a force the source gives without naming the side is compared with our mean of the two sides
+    r = r.assign(facet=r["facet"].fillna("").replace("unspecified", ""), condition=r["condition"].fillna(""))
     unstated = r.groupby(cols)["unstated"].any()
     wide = r.pivot_table(index=cols, columns="statistic", values="value", aggfunc="first").reset_index()
     rows = []
@@ -256,7 +257,7 @@ def outcomes(
 ) -> pd.DataFrame:
     """Every outcome row (`COLUMNS`) of the lumbar model: nucleus pressure of each lumbar disc, facet force of each
     joint, L1-L5 total ROM, segmental ROM L1-S1 beside the same-geometry model, then the orderings.
-    references: quantity of `QUANTITIES` -> long reference table (`spinecohort.rom.reference_rows`)."""
+    references: quantity of `QUANTITIES` -> long reference table (`spinecohort.rom.references` accessors)."""
     mode = extraction(table)
     discs = sorted({d for d in idp.loc[idp["mode"] == mode, "disc"] if d.startswith("L")}) if len(idp) else []
     joints = facets.loc[facets["mode"] == mode, "joint"].drop_duplicates().tolist() if len(facets) else []
