@@ -152,3 +152,24 @@ def test_a_real_unit_with_surface_facets_and_bundles_solves_in_ccx(real_template
     r = run_case(m, "axial_left", tmp_path, moment_nmm=1000.0, **Settings().deck_kw())
     assert r.load_fraction == 1.0
     assert 0.3 < r.curve[-1, 1] < 5.0
+
+
+def test_real_landmarks_carry_the_sites_through_json_and_validation_names_a_bad_one():
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.landmarks import Landmarks
+    from spinecohort.cohort.real import first_use_reference
+
+    ref = first_use_reference(load_reference())
+    lm = ref.landmarks
+    # 4 facet surfaces x 17 levels (T1/S1 ends included) and 17 ligament sites on T1-L5
+    assert len([k for k in lm.sites if k.startswith("facet_surface_")]) == 68
+    assert lm.site("site_LF_inf_left", "T6") is not None and lm.site("site_LF_inf_left", "S1") is None
+    back = Landmarks.from_dict(lm.to_dict())
+    assert back.sites.keys() == lm.sites.keys()
+    assert all(np.array_equal(back.sites[k], v) for k, v in lm.sites.items())
+    back.validate(len(ref.vertices))
+    bad = replace(back, sites={**back.sites, "site_CL_sup_left/T6": np.array([len(ref.vertices)])})
+    with pytest.raises(ValueError, match=r"sites\[site_CL_sup_left/T6\]"):
+        bad.validate(len(ref.vertices))
+    # a cohort without sites serializes without the key (its JSON as before)
+    assert "sites" not in replace(lm, sites={}).to_dict()
