@@ -2,13 +2,16 @@
 one-sided force table) between the articular processes of each joint, in the exported decks and in the ROM
 sub-models alike.  Units: mm, N, degrees.
 
-Each joint (the capsular-ligament anchors: the inferior articular process (IAP) tip of the upper vertebra and
-the superior articular process (SAP) tip of the lower one) gets
+Each joint (the inferior articular process (IAP) tip of the upper vertebra and the superior articular process
+(SAP) tip of the lower one: the template's ``facet_joints``, else the capsular-ligament anchors) gets
 
-* a **joint contact**: a new node at the midpoint of the two tips tied to the upper vertebra, and one
-  `FacetContact.strut_length_mm` (20 mm) back along the outward normal of the SAP's joint surface tied to the
-  lower one (`FacetContact.normal`, textbook inclination and calibrated frontal angle per level); the strut
-  between them pushes once the joint has closed by its clearance;
+* **joint contacts**: where the template has the joint's articular surfaces (a real-bone cohort,
+  `spinecohort.mesh.ligament_sites`), `FacetContact.struts_per_joint` struts spread over the part of the two
+  surfaces that face each other, along the surfaces' own normal on the model's points
+  (`spinecohort.fe.facet_geometry`), the joint's stiffness split equally; else one strut at the midpoint of the
+  two tips along `FacetContact.normal` (the configured angles per level, the fallback).  A strut's node on the
+  upper vertebra sits at the contact point, its node on the lower one `FacetContact.strut_length_mm` (20 mm)
+  back along the normal; it pushes once the joint has closed by its clearance;
 * optionally an **extension stop** (`FacetContact.tip_clearance_mm`): the same at the IAP tip, along the lower
   vertebra's cranial axis, i.e. closing when the tip comes down onto the lamina below.
 
@@ -41,8 +44,8 @@ Gap = tuple[float, tuple[float, float, float], float]  # clearance mm, unit dire
 class FacetContact:
     """Facet-joint contact as compression-only struts or gaps (see the module docstring).
 
-    The joint gap acts along the outward normal of the SAP's joint surface, from the orientation of the facet
-    plane: ``transverse_deg``, its angle to the transverse plane (White & Panjabi 1990: thoracic 60, lumbar
+    Where the template has no articular surfaces, the joint gap acts along the outward normal of the SAP's joint
+    surface, from the configured orientation of the facet plane: ``transverse_deg``, its angle to the transverse plane (White & Panjabi 1990: thoracic 60, lumbar
     90), and ``frontal_deg``, its angle to the frontal plane, positive when the SAP surface faces medially,
     negative when it faces laterally.  Normal = sin(t) (cos(f) posterior + sin(f) medial) + cos(t) cranial in
     the upper vertebra's anatomical frame.  Both angles are interpolated linearly between the anchor levels
