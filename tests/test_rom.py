@@ -20,7 +20,7 @@ from spinecohort.fe.abaqus import FEModel, LinearElastic, MooneyRivlin, Section
 from spinecohort.fe.calculix import check_input
 from spinecohort.fe.connections import arch_nodes
 from spinecohort.fe.export import read_deck_points
-from spinecohort.fe.facets import FacetContact, facet_gaps, vertebra_frame
+from spinecohort.fe.facets import FacetContact, joint_struts, vertebra_frame
 from spinecohort.fe.materials import DEFAULT_MATERIALS, FEMaterials, materials_from_config
 from spinecohort.fe.quadratic import HEX20_EDGES, quadratic_hexes
 from spinecohort.fe.writers import model_to_inp_text, write_inp
@@ -482,7 +482,11 @@ def test_facet_gap_directions_follow_the_joint_angles(template):
     cl = template.ligaments[template.elsets["LIG_CL"]]
     for t, f, expect in ((90.0, 90.0, "medial"), (90.0, 0.0, "posterior"), (0.0, 0.0, "cranial")):
         fc = FacetContact(0.5, 400.0, (("T1", t), ("L5", t)), (("T1", f), ("L5", f)))
-        gaps = facet_gaps(template, template.nodes, cl, fc)
+        st = joint_struts(template, template.nodes, cl, fc)  # no articular surfaces: one strut at the angles
+        gaps = [
+            ((c, tuple(d), k), name)
+            for c, d, k, name in zip(st.clearance_mm, st.direction, st.stiffness_n_per_mm, st.names)
+        ]
         assert len(gaps) == 32 and {g[1][-1] for g in gaps} == {"L", "R"}  # 16 segments x 2 sides
         assert all(g[0][0] == 0.5 and g[0][2] == 400.0 for g in gaps)
         n = np.array([g[0][1] for g in gaps])

@@ -15,14 +15,19 @@ with to_file(snakemake.log[0]) as log:
         TEMPLATE_RESOLUTIONS[snakemake.params.resolution],
         cep_diameter_fraction=float(snakemake.params.cep_diameter_fraction),
     )
-    template = build_template(ssm.mean, cohort.faces, cohort.landmarks, resolution)
+    # ligament bundles at the insertion sites where the cohort's landmarks carry them (real bones)
+    template = build_template(
+        ssm.mean, cohort.faces, cohort.landmarks, resolution, fibres=dict(snakemake.params.fibres)
+    )
     log.info(
-        "template: %d nodes (%d hex nodes), %d hexes, %d surface triangles, %d ligaments, %d element sets",
+        "template: %d nodes (%d hex nodes), %d hexes, %d surface triangles, %d ligament springs (fibres per ligament "
+        "%s), %d element sets",
         template.n_nodes,
         template.n_hex_nodes,
         len(template.hexes),
         len(template.tris),
         len(template.ligaments),
+        template.meta.get("ligament_fibres", {}),
         len(template.elsets),
     )
     template.save(snakemake.output.npz)

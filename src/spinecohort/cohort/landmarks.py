@@ -51,6 +51,11 @@ class Landmarks:
         ``endplate_sup/inf`` are only its rim band (a real concave endplate, whose clinical plane is fitted on the
         ring apophysis): the hex template's endplate layers are morphed onto this surface, which covers the
         nucleus (`endplate_surface`).  Optional: empty, ``endplate_sup/inf`` are the whole planar patches.
+    sites: ``"<set>/<level>"`` -> indices of an anatomical surface patch of that level: the facet articular
+        surfaces ``facet_surface_<sup|inf>_<left|right>`` and the ligament insertion sites ``site_<LIG>_<where>``
+        (`spinecohort.anatomy.labels.LIGAMENT_SITES`) of the labeled reference.  Optional (a cohort without them
+        gets single-spring ligaments at ``anchors`` and facet struts at configured angles); the hex template reads
+        them (`spinecohort.mesh.ligament_sites`).
     """
 
     part: np.ndarray
@@ -66,6 +71,12 @@ class Landmarks:
     anchors: dict[str, np.ndarray] = field(default_factory=dict)
     endplate_full_sup: dict[str, np.ndarray] = field(default_factory=dict)
     endplate_full_inf: dict[str, np.ndarray] = field(default_factory=dict)
+    sites: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def site(self, name: str, level: str) -> np.ndarray | None:
+        """Vertex indices of the site ``name`` (e.g. ``facet_surface_sup_left``, ``site_LF_inf_right``) of
+        ``level``, or None when the cohort has no such site."""
+        return self.sites.get(f"{name}/{level}")
 
     def endplate_surface(self, side: str, level: str) -> np.ndarray:
         """Vertex indices of the whole endplate of `level` (`side` 'sup' | 'inf'): ``endplate_full_<side>`` where
@@ -100,7 +111,7 @@ class Landmarks:
         """The vertices the spinopelvic measurement reads (endplates, rims, femoral heads, symphysis) and the
         vertices ``extra``, sorted, and these landmarks on that row list: ``measure(points[:, rows],
         restricted)`` gives what ``measure(points, self)`` gives, bit for bit (every set keeps its order).
-        ``body`` and ``anchors`` are dropped: the measurement does not read them."""
+        ``body``, ``anchors`` and ``sites`` are dropped: the measurement does not read them."""
         sets = [np.ravel(v) for name in MEASURED_SETS for v in getattr(self, name).values()]
         rows = np.unique(np.concatenate([*sets, self.pubic_symphysis, np.asarray(extra, dtype=np.int64)]))
         restricted = replace(
@@ -110,6 +121,7 @@ class Landmarks:
             anchors={},
             endplate_full_sup={},
             endplate_full_inf={},
+            sites={},
             pubic_symphysis=np.searchsorted(rows, self.pubic_symphysis),
             **{name: {k: np.searchsorted(rows, v) for k, v in getattr(self, name).items()} for name in MEASURED_SETS},
         )
@@ -140,6 +152,7 @@ class Landmarks:
             "anchors": self.anchors,
             "endplate_full_sup": self.endplate_full_sup,
             "endplate_full_inf": self.endplate_full_inf,
+            "sites": self.sites,
         }
 
     def to_dict(self) -> dict:
@@ -151,8 +164,8 @@ class Landmarks:
             "meta": self.meta,
         }
         for name, sets in self._sets().items():
-            if name.startswith("endplate_full") and not sets:
-                continue  # optional (`endplate_surface`): a cohort without them serializes as before
+            if (name.startswith("endplate_full") or name == "sites") and not sets:
+                continue  # optional (`endplate_surface`, `site`): a cohort without them serializes as before
             if name == "pubic_symphysis":
                 out[name] = self.pubic_symphysis.astype(int).tolist()
             else:
@@ -181,6 +194,7 @@ class Landmarks:
             anchors={k: idx(v) for k, v in d.get("anchors", {}).items()},
             endplate_full_sup={k: idx(v) for k, v in d.get("endplate_full_sup", {}).items()},
             endplate_full_inf={k: idx(v) for k, v in d.get("endplate_full_inf", {}).items()},
+            sites={k: idx(v) for k, v in d.get("sites", {}).items()},
         )
 
     def save(self, path: str | Path) -> None:

@@ -407,6 +407,19 @@ def morton_codes(points_mm: np.ndarray, bits: int = 10) -> np.ndarray:
     return code
 
 
+def reference_sites(ref: Reference) -> dict[str, np.ndarray]:
+    """The reference's facet articular surfaces and ligament insertion sites as `Landmarks.sites`
+    (``"<set>/<level>"`` -> vertex indices): every model of the real cohort has the reference's vertex numbering,
+    so these sets name the same anatomy on each of them."""
+    return {
+        f"{name}/{lv}": np.asarray(v, dtype=np.int64)
+        for name, per in ref.sets.items()
+        if name.startswith(("facet_surface_", "site_"))
+        for lv, v in per.items()
+        if len(v)
+    }
+
+
 def first_use_reference(ref: Reference) -> Reference:
     """The reference with its faces sorted along a Z-order curve and its vertices numbered in order of first use
     by those faces, every index set remapped.  First use: an STL written and read back (vertices merged in
@@ -423,6 +436,8 @@ def first_use_reference(ref: Reference) -> Reference:
     def remap(sets):
         return {k: np.sort(inv[v]) for k, v in sets.items()}
 
+    # the facet surfaces and ligament sites ride with the landmarks, so the hex template gets them (`reference_sites`)
+    lm = replace(lm, sites={**lm.sites, **reference_sites(ref)})
     new_lm = replace(lm.renumbered(order), meta={**lm.meta, "generator": "spinecohort.cohort.real"})
     return Reference(
         ref.vertices[order],

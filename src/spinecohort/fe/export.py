@@ -20,6 +20,7 @@ from spinecohort.fe.materials import (
     annulus_material,
     annulus_ring_k1,
     annulus_ring_sets,
+    fibre_law,
     ligament_table,
     material_cards,
 )
@@ -274,7 +275,8 @@ def fe_model(
             group = name.split("_", 1)[1]
             ends = pts[template.ligaments[template.elsets[name]]]
             rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
-            sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[group], rest)))
+            law = fibre_law(mats.ligaments[group], template.ligament_fibres(group))  # a bundle's fibre
+            sections.append(Section(elset=name, spring_force_elongation=ligament_table(law, rest)))
     sections += [Section(elset=name, spring_force_elongation=CONNECTOR_TABLE) for name in conn_sets]
     if fn is not None:
         sections += fn.section_list()

@@ -2,13 +2,16 @@
 one-sided force table) between the articular processes of each joint, in the exported decks and in the ROM
 sub-models alike.  Units: mm, N, degrees.
 
-Each joint (the capsular-ligament anchors: the inferior articular process (IAP) tip of the upper vertebra and
-the superior articular process (SAP) tip of the lower one) gets
+Each joint (the inferior articular process (IAP) tip of the upper vertebra and the superior articular process
+(SAP) tip of the lower one: the template's ``facet_joints``, else the capsular-ligament anchors) gets
 
-* a **joint contact**: a new node at the midpoint of the two tips tied to the upper vertebra, and one
-  `FacetContact.strut_length_mm` (20 mm) back along the outward normal of the SAP's joint surface tied to the
-  lower one (`FacetContact.normal`, textbook inclination and calibrated frontal angle per level); the strut
-  between them pushes once the joint has closed by its clearance;
+* **joint contacts**: where the template has the joint's articular surfaces (a real-bone cohort,
+  `spinecohort.mesh.ligament_sites`), `FacetContact.struts_per_joint` struts spread over the part of the two
+  surfaces that face each other, along the surfaces' own normal on the model's points
+  (`spinecohort.fe.facet_geometry`), the joint's stiffness split equally; else one strut at the midpoint of the
+  two tips along `FacetContact.normal` (the configured angles per level, the fallback).  A strut's node on the
+  upper vertebra sits at the contact point, its node on the lower one `FacetContact.strut_length_mm` (20 mm)
+  back along the normal; it pushes once the joint has closed by its clearance;
 * optionally an **extension stop** (`FacetContact.tip_clearance_mm`): the same at the IAP tip, along the lower
   vertebra's cranial axis, i.e. closing when the tip comes down onto the lamina below.
 
@@ -31,6 +34,7 @@ import numpy as np
 
 from spinecohort.cohort.landmarks import LEVELS
 from spinecohort.fe.connections import arch_owner, body_layer
+from spinecohort.fe.facet_geometry import JointGeometry, joint_geometry
 from spinecohort.mesh.template import HexTemplate, fit_endplate
 
 Gap = tuple[float, tuple[float, float, float], float]  # clearance mm, unit direction, stiffness N/mm
@@ -40,8 +44,8 @@ Gap = tuple[float, tuple[float, float, float], float]  # clearance mm, unit dire
 class FacetContact:
     """Facet-joint contact as compression-only struts or gaps (see the module docstring).
 
-    The joint gap acts along the outward normal of the SAP's joint surface, from the orientation of the facet
-    plane: ``transverse_deg``, its angle to the transverse plane (White & Panjabi 1990: thoracic 60, lumbar
+    Where the template has no articular surfaces, the joint gap acts along the outward normal of the SAP's joint
+    surface, from the configured orientation of the facet plane: ``transverse_deg``, its angle to the transverse plane (White & Panjabi 1990: thoracic 60, lumbar
     90), and ``frontal_deg``, its angle to the frontal plane, positive when the SAP surface faces medially,
     negative when it faces laterally.  Normal = sin(t) (cos(f) posterior + sin(f) medial) + cos(t) cranial in
     the upper vertebra's anatomical frame.  Both angles are interpolated linearly between the anchor levels
@@ -70,6 +74,9 @@ class FacetContact:
     #: width (mm of shortening past the clearance) over which a strut's stiffness rises from 0 to its closed
     #: value (`strut_table`'s rounded corner)
     blend_mm: float = 0.05
+    #: struts per joint where the template has the joint's articular surfaces (`spinecohort.fe.facet_geometry`),
+    #: spread over the part of the surfaces that face each other, the joint's stiffness split among them
+    struts_per_joint: int = 4
 
     @staticmethod
     def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
@@ -111,6 +118,7 @@ class FacetContact:
             float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
             None if strut is None else float(strut),
             float(cfg.get("blend_mm", cls.blend_mm)),
+            int(cfg.get("struts_per_joint", cls.struts_per_joint)),
         )
 
 
@@ -177,8 +185,13 @@ def strut_table(
 
 def facet_pairs(template: HexTemplate, allowed: np.ndarray | None = None) -> np.ndarray:
     """(J, 2) template node ids (IAP tip of the upper vertebra, SAP tip of the lower) of every facet joint: the
+    template's ``facet_joints`` (a template with articular surfaces, whose capsules are fibre bundles), else the
     capsular-ligament anchors; allowed: a node mask both ends must be in (a sub-model's nodes)."""
-    cl = template.ligaments[template.elsets["LIG_CL"]]
+    cl = (
+        template.sites["facet_joints"]
+        if "facet_joints" in template.sites
+        else template.ligaments[template.elsets["LIG_CL"]]
+    )
     return cl if allowed is None else cl[allowed[cl].all(axis=1)]
 
 
@@ -216,68 +229,133 @@ def _joints(
     return frames, joints
 
 
-def facet_gaps(
-    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
-) -> list[tuple[Gap, str]]:
-    """(gap, elset name) of each joint gap, in the order of `pairs`; direction from the SAP towards the IAP."""
-    frames, joints = _joints(template, points, pairs)
-    return [
-        (
-            (facets.clearance_mm, tuple(map(float, facets.normal(up, frames[up][0], side))), facets.stiffness_n_per_mm),
-            f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}",
-        )
-        for up, lo, side in joints
-    ]
+def joint_surfaces(template: HexTemplate, up: str, lo: str, side: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Template node ids of a joint's articular surfaces (SAP of the lower vertebra `lo`, IAP of the upper `up`;
+    side +1 right, -1 left), None when the template has none (a cohort without insertion sites)."""
+    name = "right" if side > 0 else "left"
+    sap, iap = f"facet_surface_sup_{name}/{lo}", f"facet_surface_inf_{name}/{up}"
+    if sap not in template.sites or iap not in template.sites:
+        return None
+    return template.sites[sap], template.sites[iap]
 
 
-def tip_gaps(
-    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact
-) -> list[tuple[Gap, str]]:
-    """(gap, elset name) of each joint's extension stop: the IAP tip of the upper vertebra coming down onto
-    the lamina of the lower one.  Direction: the lower vertebra's cranial axis (node 1 on the lower vertebra,
-    node 2 at the IAP tip), so the gap closes when the tip moves caudally."""
-    frames, joints = _joints(template, points, pairs)
-    return [
-        (
-            (float(facets.tip_clearance_mm), tuple(map(float, frames[lo][0][:, 2])), facets.tip_stiffness_n_per_mm),
-            f"FACET_TIP_{up}{lo}_{'R' if side > 0 else 'L'}",
+def surface_normal(template: HexTemplate, points: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Area-weighted normal (3,) of the skin triangles with all three nodes in `nodes` (the skin's outward side)."""
+    tri = template.tris[np.isin(template.tris, nodes).all(1)]
+    p = points[tri]
+    return np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).sum(0)
+
+
+def joint_geometries(
+    template: HexTemplate, points: np.ndarray, pairs: np.ndarray, n_points: int
+) -> list[JointGeometry | None]:
+    """Per joint of `pairs` its `JointGeometry` on the model's `points` (`spinecohort.fe.facet_geometry`), None
+    where the template has no articular surfaces."""
+    _, joints = _joints(template, points, pairs)
+    out = []
+    for up, lo, side in joints:
+        surf = joint_surfaces(template, up, lo, side)
+        if surf is None:
+            out.append(None)
+            continue
+        sap, iap = surf
+        out.append(
+            joint_geometry(
+                points[sap], points[iap], n_points, *(surface_normal(template, points, s) for s in (sap, iap))
+            )
         )
-        for up, lo, side in joints
-    ]
+    return out
+
+
+@dataclass(frozen=True)
+class Struts:
+    """Contact struts: (S, 3) mm position of the node on the upper vertebra, (S, 3) unit direction (from the
+    lower node to the upper), and per strut its clearance (mm), stiffness (N/mm), upper and lower vertebra and
+    element set name."""
+
+    at: np.ndarray
+    direction: np.ndarray
+    clearance_mm: np.ndarray
+    stiffness_n_per_mm: np.ndarray
+    upper: list[str]
+    lower: list[str]
+    names: list[str]
+
+
+def joint_struts(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact) -> Struts:
+    """The joints' contact struts.  Where the template has the joint's articular surfaces: ``struts_per_joint``
+    struts at the contact points of its `JointGeometry`, along the normal of the surfaces' own plane, the joint's
+    stiffness split equally; else one strut at the midpoint of the two tips along `FacetContact.normal` (the
+    configured angles)."""
+    frames, joints = _joints(template, points, pairs)
+    geos = joint_geometries(template, points, pairs, facets.struts_per_joint)
+    at, direction, names, upper, lower, stiff = [], [], [], [], [], []
+    for (iap, sap), (up, lo, side), geo in zip(pairs, joints, geos):
+        tag = f"FACET_{up}{lo}_{'R' if side > 0 else 'L'}"
+        if geo is None:
+            pos, dirs = 0.5 * (points[iap] + points[sap])[None], facets.normal(up, frames[up][0], side)[None]
+        else:
+            pos, dirs = geo.points, np.broadcast_to(geo.normal, geo.points.shape)
+        m = len(pos)
+        at.append(pos)
+        direction.append(dirs)
+        names += [tag] if m == 1 else [f"{tag}{k + 1}" for k in range(m)]
+        upper += [up] * m
+        lower += [lo] * m
+        stiff += [facets.stiffness_n_per_mm / m] * m
+    s = len(names)
+    return Struts(
+        np.concatenate(at) if s else np.zeros((0, 3)),
+        np.concatenate(direction) if s else np.zeros((0, 3)),
+        np.full(s, facets.clearance_mm),
+        np.asarray(stiff, dtype=np.float64),
+        upper,
+        lower,
+        names,
+    )
+
+
+def tip_struts(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact) -> Struts:
+    """Each joint's extension stop: the IAP tip of the upper vertebra coming down onto the lamina of the lower
+    one, along the lower vertebra's cranial axis (so the stop closes when the tip moves caudally)."""
+    frames, joints = _joints(template, points, pairs)
+    j = len(joints)
+    return Struts(
+        points[pairs[:, 0]] if j else np.zeros((0, 3)),
+        np.array([frames[lo][0][:, 2] for _, lo, _ in joints]).reshape(-1, 3),
+        np.full(j, float(facets.tip_clearance_mm or 0.0)),
+        np.full(j, facets.tip_stiffness_n_per_mm),
+        [up for up, _, _ in joints],
+        [lo for _, lo, _ in joints],
+        [f"FACET_TIP_{up}{lo}_{'R' if side > 0 else 'L'}" for up, lo, side in joints],
+    )
 
 
 def facet_nodes(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact) -> FacetNodes:
-    """The new nodes, gap elements and ties of the joints `pairs` (`facet_pairs`) of a model with coordinates
-    `points` (template node order, mm)."""
-    owner = arch_owner(template)
-    j = len(pairs)
-    upper = [owner[int(i)] for i in pairs[:, 0]]
-    lower = [owner[int(i)] for i in pairs[:, 1]]
-    h = facets.strut_length_mm or 0.0  # a strut's lower node lies `h` back along the contact direction
-
-    def pair_blocks(at: np.ndarray, gaps: list[tuple[Gap, str]]) -> list[np.ndarray]:
-        direction = np.array([g[1] for g, _ in gaps]).reshape(-1, 3)
-        return [at, at - h * direction]  # upper side, lower side
-
-    sections = facet_gaps(template, points, pairs, facets)
-    blocks = pair_blocks(0.5 * (points[pairs[:, 0]] + points[pairs[:, 1]]), sections)  # the joint
+    """The new nodes, contact elements and ties of the joints `pairs` (`facet_pairs`) of a model with coordinates
+    `points` (template node order, mm): the joint struts (`joint_struts`), then the extension stops."""
+    kinds = [joint_struts(template, points, pairs, facets)]
     if facets.tip_clearance_mm is not None:
-        tips = tip_gaps(template, points, pairs, facets)
-        blocks += pair_blocks(points[pairs[:, 0]], tips)  # extension stop: at the IAP tip
-        sections += tips
-    pts = np.concatenate(blocks) if j else np.zeros((0, 3))
-    kinds = len(blocks) // 2
-    up_idx = np.concatenate([2 * k * j + np.arange(j) for k in range(kinds)]) if j else np.zeros(0, np.int64)
-    lo_idx = up_idx + j
-    gaps = np.stack([lo_idx, up_idx], 1).astype(np.int64)  # node 1 = lower vertebra, node 2 = upper
+        kinds.append(tip_struts(template, points, pairs, facets))
+    h = facets.strut_length_mm or 0.0  # a strut's lower node lies `h` back along the contact direction
+    blocks, gaps, sections = [], [], []
     tied: dict[str, list[int]] = {}
-    for k in range(kinds):
-        for i in range(j):
-            tied.setdefault(upper[i], []).append(int(2 * k * j + i))
-            tied.setdefault(lower[i], []).append(int(2 * k * j + j + i))
+    first = 0
+    for st in kinds:
+        s = len(st.names)
+        blocks += [st.at, st.at - h * st.direction]  # upper side, lower side
+        gaps.append(np.stack([first + s + np.arange(s), first + np.arange(s)], 1))  # node 1 lower, node 2 upper
+        sections += [
+            ((float(c), tuple(map(float, d)), float(k)), name)
+            for c, d, k, name in zip(st.clearance_mm, st.direction, st.stiffness_n_per_mm, st.names)
+        ]
+        for i in range(s):
+            tied.setdefault(st.upper[i], []).append(first + i)
+            tied.setdefault(st.lower[i], []).append(first + s + i)
+        first += 2 * s
     return FacetNodes(
-        pts,
-        gaps,
+        np.concatenate(blocks) if first else np.zeros((0, 3)),
+        np.concatenate(gaps).astype(np.int64) if first else np.zeros((0, 2), dtype=np.int64),
         sections,
         {v: np.asarray(ix, dtype=np.int64) for v, ix in tied.items()},
         facets.strut_length_mm,

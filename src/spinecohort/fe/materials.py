@@ -20,13 +20,15 @@ the defaults below equal config/config.yaml, each with its literature source:
 * ligaments tension-only bilinear springs (SPRINGA, *SPRING NONLINEAR): Young's moduli below/above a
   transition strain and cross-section areas of Goel et al. 1995 (as tabulated in Kim et al. 2013, BMC
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
-  switchable.  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
+  switchable.  Where the template builds ALL, PLL, LF and CL as fibre bundles, each fibre has the group's area
+  divided by its fibre count (`fibre_law`).  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
   export deck uses one table per group at the group's mean rest length in the model; the ROM decks
   (`spinecohort.rom.submodel`) use one table per ligament element.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -199,6 +201,14 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         include_all=bool(fe["include_all"]),
         facets=FacetContact.from_config(fe.get("facets")),  # None: a release made before facets were exported
     )
+
+
+def fibre_law(law: LigamentLaw, fibres: int) -> LigamentLaw:
+    """The law of one fibre of a ligament made of `fibres` equal fibres (`spinecohort.mesh.ligament_sites`): the
+    ligament's area split equally, so the fibres under one uniform strain carry the single spring's force."""
+    if fibres < 1:
+        raise ValueError(f"a ligament needs at least one fibre, got {fibres}")
+    return dataclasses.replace(law, area_mm2=law.area_mm2 / fibres)
 
 
 def ligament_force_n(law: LigamentLaw, strain: np.ndarray, toe_strain: float = 0.01, blend: float = 0.2) -> np.ndarray:

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
+from spinecohort.mesh import ligament_sites as ls
 
 LIGAMENT_GROUPS = ("ISL", "SSL", "LF", "CL", "ITL", "PLL", "ALL")
 
@@ -217,6 +218,14 @@ class HexTemplate:
     grid: OGrid
     resolution: TemplateResolution
     meta: dict = field(default_factory=dict)
+    #: facet articular surfaces (``"facet_surface_<sup|inf>_<side>/<level>"`` -> skin node ids) and the facet
+    #: joints' anchor pairs (``"facet_joints"``: (J, 2) IAP tip, SAP tip) of a cohort with insertion sites
+    #: (`spinecohort.mesh.ligament_sites`); empty for a cohort without
+    sites: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def ligament_fibres(self, group: str) -> int:
+        """Fibres per ligament of a group (1: one spring; `spinecohort.mesh.ligament_sites`)."""
+        return int(self.meta.get("ligament_fibres", {}).get(group, 1))
 
     @property
     def n_nodes(self) -> int:
@@ -243,9 +252,11 @@ class HexTemplate:
             "meta": self.meta,
             "elsets": list(self.elsets),
             "nsets": list(self.nsets),
+            "sites": list(self.sites),
         }
         arrays = {f"elset__{k}": v for k, v in self.elsets.items()}
         arrays.update({f"nset__{k}": v for k, v in self.nsets.items()})
+        arrays.update({f"site__{i}": v for i, v in enumerate(self.sites.values())})  # names hold "/"
         np.savez(
             path,
             nodes=self.nodes,
@@ -291,6 +302,7 @@ class HexTemplate:
                 grid=grid,
                 resolution=TemplateResolution(**meta["resolution"]),
                 meta=meta["meta"],
+                sites={k: z[f"site__{i}"] for i, k in enumerate(meta.get("sites", []))},
             )
 
 
@@ -327,9 +339,12 @@ def build_template(
     mean_faces: np.ndarray,
     landmarks: Landmarks,
     res: TemplateResolution,
+    fibres: dict[str, int] | None = None,
 ) -> HexTemplate:
     """Assemble the template on a triangulated shape (the SSM mean): hex column placed by the endplate
-    frames (before morphing), surface elements and ligaments from the shape's own vertices."""
+    frames (before morphing), surface elements and ligaments from the shape's own vertices.  fibres: group ->
+    fibres per ligament (config ``fe.ligaments.<group>.fibres``) of the bundles ALL, PLL, LF, CL, built at the
+    insertion sites when the landmarks carry them (`spinecohort.mesh.ligament_sites`); else one spring each."""
     grid = ogrid(res)
     n2 = len(grid.nodes)
     layers = layer_plan(res)
@@ -406,33 +421,9 @@ def build_template(
             key = label.upper()
         tri_sets[key] = np.flatnonzero(tri_part == label)
 
-    # --- ligaments between adjacent levels
-    a = landmarks.anchors
-    lig, lig_group = [], []
-
-    def add(group, u, v):
-        lig.append((u, v))
-        lig_group.append(group)
-
-    for up, lo in zip(range(16), range(1, 17)):
-        if a:
-            add("SSL", remap[a["spinous_tip"][up]], remap[a["spinous_tip"][lo]])
-            add("ISL", remap[a["spinous_lower"][up]], remap[a["spinous_upper"][lo]])
-            for s in "LR":
-                add("LF", remap[a[f"lamina_lower_{s}"][up]], remap[a[f"lamina_upper_{s}"][lo]])
-                add("CL", remap[a[f"iap_tip_{s}"][up]], remap[a[f"sap_tip_{s}"][lo]])
-                add("ITL", remap[a[f"tp_tip_{s}"][up]], remap[a[f"tp_tip_{s}"][lo]])
-    # PLL / ALL: posterior / anterior midline of the outer ring, from each vertebra's inferior endplate to
-    # the superior endplate (or S1 plate) below it
-    outer_xy = grid.nodes[grid.outer]
-    post = grid.outer[np.argmin(outer_xy[:, 1] + 1e-6 * np.abs(outer_xy[:, 0]))]
-    ant = grid.outer[np.argmax(outer_xy[:, 1] - 1e-6 * np.abs(outer_xy[:, 0]))]
-    for vert, lv in enumerate(LEVELS):
-        inf_layer = _layer_index(layers, lv, 0.0)
-        below = _layer_index(layers, LEVELS[vert + 1], 1.0) if vert + 1 < len(LEVELS) else 0
-        add("PLL", inf_layer * n2 + post, below * n2 + post)
-        add("ALL", inf_layer * n2 + ant, below * n2 + ant)
-    ligaments = np.array(lig, dtype=np.int64)
+    # --- ligaments between adjacent levels: single springs at the anchors, or bundles at the insertion sites
+    lig, lig_group, sites, counts = ls.template_ligaments(landmarks, remap, pts, grid, layers, eps, fibres or {})
+    ligaments = np.asarray(lig, dtype=np.int64).reshape(-1, 2)
     lig_group = np.array(lig_group)
     if np.any(ligaments < 0):
         raise ValueError("a ligament anchor is not on a surface part of the mesh")
@@ -467,6 +458,8 @@ def build_template(
         layers,
         grid,
         res,
+        meta={"ligament_fibres": counts} if sites else {},
+        sites=sites,
     )
 
 

@@ -48,7 +48,14 @@ from spinecohort.fe.connections import (
 )
 from spinecohort.fe.export import add_fibres, annulus_fibres, disc_orientations, hex_blocks, hex_section
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
-from spinecohort.fe.materials import DEFAULT_MATERIALS, FEMaterials, annulus_ring_sets, ligament_table, material_cards
+from spinecohort.fe.materials import (
+    DEFAULT_MATERIALS,
+    FEMaterials,
+    annulus_ring_sets,
+    fibre_law,
+    ligament_table,
+    material_cards,
+)
 from spinecohort.fe.quadratic import quadratic_blocks, ties_on
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 from spinecohort.rom.ribs import RibHeads, rib_head_nodes
@@ -220,7 +227,8 @@ def extract_rom_model(
         for i, (g, length) in enumerate(zip(groups, rest)):
             name = f"LIG_{g}_{i + 1}"
             elsets[name] = np.array([n_hexes + i])
-            sections.append(Section(elset=name, spring_force_elongation=ligament_table(mats.ligaments[g], length)))
+            law = fibre_law(mats.ligaments[g], template.ligament_fibres(g))  # a bundle's fibre: its share of the area
+            sections.append(Section(elset=name, spring_force_elongation=ligament_table(law, length)))
             lig_counts[g] = lig_counts.get(g, 0) + 1
     if fn is not None:
         first = n_hexes + len(lig_conn)
