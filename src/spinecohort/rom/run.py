@@ -281,6 +281,7 @@ REPORT_KEYS = (
     "sensitivity",
     "mode_levels",
     "mode_units",
+    "convergence",
 )
 
 
