@@ -100,3 +100,21 @@ def test_the_coarser_preset_is_coarser_than_the_default_and_morphs_without_inver
     # 12 around x 3 rings + 3x3 core = 45 quads per layer; 17 bodies x 3 + 17 discs x 4 element layers = 119
     assert mesh["model_hexes"] == len(template.hexes) == 45 * 119
     assert mesh["model_inverted"] == 0 and mesh["model_min_scaled_jacobian"] > 0
+
+
+def test_one_field_variants_change_exactly_one_discretisation_field():
+    from dataclasses import asdict
+
+    from spinecohort.rom.convergence import one_field_variants
+
+    base = asdict(TEMPLATE_RESOLUTIONS["coarse"])
+    variants = one_field_variants("coarse", "medium")
+    # medium refines all four: core 4 -> 6 cells, rings 3 -> 5, body layers 4 -> 8, disc layers 3 -> 5
+    assert {f: getattr(r, f) for f, r in variants.items()} == {
+        "core_cells": 6,
+        "rings": 5,
+        "body_layers": 8,
+        "disc_layers": 5,
+    }
+    for field, res in variants.items():
+        assert [k for k, v in asdict(res).items() if v != base[k]] == [field]

@@ -17,7 +17,7 @@ import pandas as pd
 from spinecohort.fe.materials import FEMaterials
 from spinecohort.mesh.morph import MorphParameters, morph_template
 from spinecohort.mesh.quality.verdict import scaled_jacobian
-from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, HexTemplate, build_template
+from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, HexTemplate, TemplateResolution, build_template
 from spinecohort.rom.run import Settings, solve_model, units_only
 from spinecohort.rom.submodel import extract_rom_model, parse_unit
 
@@ -66,19 +66,38 @@ class ConvergenceStudy:
         return default, self.resolutions[i + 1]
 
 
+#: the `TemplateResolution` fields that set the element counts, with the tissue each one refines
+DISCRETISATION_FIELDS = {
+    "core_cells": "cross-section: nucleus core and elements around (bodies and discs)",
+    "rings": "cross-section: rings from the core out (annulus, cortical shell)",
+    "body_layers": "vertebral bodies: element layers",
+    "disc_layers": "discs: element layers between the cartilage endplates",
+}
+
+
+def one_field_variants(base: str, finer: str) -> dict[str, TemplateResolution]:
+    """``base`` with one discretisation field at a time set to ``finer``'s value: field name -> resolution
+    (only the fields that differ).  Solving them says which tissue's discretisation moves the ROM."""
+    a, b = TEMPLATE_RESOLUTIONS[base], TEMPLATE_RESOLUTIONS[finer]
+    return {
+        f: dataclasses.replace(a, **{f: getattr(b, f)}) for f in DISCRETISATION_FIELDS if getattr(a, f) != getattr(b, f)
+    }
+
+
 def morphed_template(
-    resolution: str,
+    resolution: str | TemplateResolution,
     mean_points: np.ndarray,
     mean_faces: np.ndarray,
     landmarks,
     morph: MorphParameters,
     cep_diameter_fraction: float = 1.0,
 ) -> tuple[HexTemplate, np.ndarray, dict]:
-    """The template at ``resolution`` built on the mean and morphed onto it, as rules hex_template and
+    """The template at ``resolution`` (a preset's name or a `TemplateResolution`) built on the mean and morphed onto it, as rules hex_template and
     morph_template do: (template, morphed nodes (N, 3) mm, mesh summary).  The summary counts the whole
     model's hexes with a scaled Jacobian <= 0 (``inverted``); the morph rule refuses such a mean, the study
     records it and solves the units, whose own hexes `solve_model` checks."""
-    res = dataclasses.replace(TEMPLATE_RESOLUTIONS[resolution], cep_diameter_fraction=float(cep_diameter_fraction))
+    preset = TEMPLATE_RESOLUTIONS[resolution] if isinstance(resolution, str) else resolution
+    res = dataclasses.replace(preset, cep_diameter_fraction=float(cep_diameter_fraction))
     template = build_template(mean_points, mean_faces, landmarks, res)
     nodes, _ = morph_template(template, mean_points, mean_faces, landmarks, morph)
     sj = scaled_jacobian(nodes, template.hexes)
@@ -91,7 +110,7 @@ def morphed_template(
         }
     )
     summary = dict(
-        resolution=resolution,
+        resolution=resolution if isinstance(resolution, str) else "custom",
         model_hex_nodes=template.n_hex_nodes,
         model_hexes=len(template.hexes),
         model_min_scaled_jacobian=float(sj.min()),
