@@ -41,9 +41,12 @@ def convergence_figure(table: pd.DataFrame, default: str, max_change: float, pat
         ax.minorticks_off()
         ax.set_xlabel("resolution, elements of the unit")
         ax.set_ylabel("ROM (deg)")
-        ax.set_title(f"{unit} (ringed: default; band: ±{100 * max_change:g} % of the next finer)", fontsize=8)
+        ax.set_title(unit)
         ax.set_ylim(bottom=0)
     axes[0, 0].legend(fontsize=7)
+    fig.suptitle(
+        f"ROM vs template resolution (ringed: the default; band: ±{100 * max_change:g} % of the next finer)", fontsize=9
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

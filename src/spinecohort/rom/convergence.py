@@ -176,7 +176,13 @@ def convergence_table(rom: pd.DataFrame, resolutions: list[str], default: str, m
     if default not in resolutions[:-1]:
         raise ValueError(f"the default resolution '{default}' must be one of {resolutions[:-1]} (not the finest)")
     key = ["unit", "segment", "load_case"]
-    t = rom.assign(_order=rom["resolution"].map(order)).sort_values(key + ["_order"]).reset_index(drop=True)
+    # units and load cases in the order solved (the config's), resolutions coarse to fine
+    first = {c: {v: i for i, v in enumerate(dict.fromkeys(rom[c]))} for c in key}
+    t = (
+        rom.assign(_order=rom["resolution"].map(order))
+        .sort_values(key + ["_order"], key=lambda col: col.map(first[col.name]) if col.name in first else col)
+        .reset_index(drop=True)
+    )
     finer = t.groupby(key)["rom_deg"].shift(-1)
     finer_order = t.groupby(key)["_order"].shift(-1)
     # only a change to the next resolution of the study counts: a missing finer solve leaves NaN
