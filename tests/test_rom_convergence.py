@@ -1,9 +1,12 @@
 """The mesh-convergence study's table logic on a hand-made table, and the coarser preset it adds below the
 default resolution."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
 from spinecohort.mesh.morph import MorphParameters
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS
@@ -118,3 +121,9 @@ def test_one_field_variants_change_exactly_one_discretisation_field():
     }
     for field, res in variants.items():
         assert [k for k, v in asdict(res).items() if v != base[k]] == [field]
+
+
+def test_the_schema_offers_every_template_resolution_to_the_study():
+    schema = yaml.safe_load((Path(__file__).parents[1] / "workflow/schemas/config.schema.yaml").read_text())
+    study = schema["properties"]["rom"]["properties"]["convergence"]["properties"]
+    assert study["resolutions"]["items"]["enum"] == list(TEMPLATE_RESOLUTIONS)
