@@ -4,7 +4,8 @@
 Run (after rule rom_convergence, whose table gives the base and finer ROM):
     python benchmarks/bench_rom_convergence_fields.py --results results --units T6T7 --cases lateral_left lateral_right
 Writes <results>/rom/convergence_fields.csv and prints, per field, the ROM (deg) and its change (%) from the base
-resolution's, next to the finer resolution's change.  One ccx at a time, one thread.
+resolution's, next to the finer resolution's change, and the units' disc cross-section and height as meshed at the
+base, each variant and the finer resolution.  One ccx at a time, one thread.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.fe.materials import materials_from_config
 from spinecohort.layout import Layout
 from spinecohort.mesh.morph import MorphParameters
-from spinecohort.rom.convergence import morphed_template, one_field_variants, solve_resolution
+from spinecohort.rom.convergence import disc_geometry, morphed_template, one_field_variants, solve_resolution
 from spinecohort.rom.run import solver_config
 from spinecohort.ssm.model import SSM
 
@@ -37,8 +38,9 @@ def main() -> None:
     lay = Layout(args.results)
     ssm, cohort = SSM.load(lay.ssm), load_cohort_npz(lay.cohort)
     rom = {**solver_config(cfg["rom"]), "threads": 1}
-    rows = []
-    for field, res in one_field_variants(args.base, args.finer).items():
+    rows, geometry = [], []
+    variants = {args.base: args.base, **one_field_variants(args.base, args.finer), args.finer: args.finer}
+    for field, res in variants.items():
         template, nodes, mesh = morphed_template(
             res,
             ssm.mean,
@@ -47,6 +49,9 @@ def main() -> None:
             MorphParameters(**cfg["morph"]),
             cfg["template"]["cep_diameter_fraction"],
         )
+        geometry.append(disc_geometry(template, nodes, args.units).assign(variant=field))
+        if field in (args.base, args.finer):  # solved by rule rom_convergence
+            continue
         work = Path(lay.path("rom", "convergence_fields", field))
         t = solve_resolution(
             template, nodes, rom, args.units, args.cases, work, materials_from_config(cfg["fe"]), field
@@ -66,6 +71,13 @@ def main() -> None:
     with pd.option_context("display.width", 200):
         print(table[cols].round(4).to_string(index=False))
     print(f"written {out}")
+    geo = pd.concat(geometry, ignore_index=True)
+    print("disc cross-section (endplate areas, mm2) and mean height (mm) as meshed:")
+    print(
+        geo.pivot_table(
+            index="variant", columns="unit", values=["upper_endplate_mm2", "mean_height_mm"], sort=False
+        ).round(1)
+    )
 
 
 if __name__ == "__main__":

@@ -127,3 +127,15 @@ def test_the_schema_offers_every_template_resolution_to_the_study():
     schema = yaml.safe_load((Path(__file__).parents[1] / "workflow/schemas/config.schema.yaml").read_text())
     study = schema["properties"]["rom"]["properties"]["convergence"]["properties"]
     assert study["resolutions"]["items"]["enum"] == list(TEMPLATE_RESOLUTIONS)
+
+
+def test_disc_geometry_scales_as_area_and_length(template):
+    from spinecohort.rom.convergence import disc_geometry
+
+    g1 = disc_geometry(template, template.nodes, ["L3L4", "T6T7"])
+    g2 = disc_geometry(template, 2.0 * template.nodes, ["L3L4", "T6T7"])
+    assert list(g1["unit"]) == ["L3-L4", "T6-T7"]
+    # doubling every coordinate: areas x4, heights x2; a lumbar disc is wider and taller than a thoracic one
+    assert np.allclose(g2["upper_endplate_mm2"], 4 * g1["upper_endplate_mm2"])
+    assert np.allclose(g2["mean_height_mm"], 2 * g1["mean_height_mm"])
+    assert (g1["upper_endplate_mm2"].iloc[0] > g1["upper_endplate_mm2"].iloc[1]) and (g1["mean_height_mm"] > 0).all()

@@ -261,3 +261,30 @@ def convergence_markdown(table: pd.DataFrame, default: str, finer: str, max_chan
             f"{r['solves']} | {r['solve_s']:.0f} | {r['max_case_solve_s']:.0f} | {r['peak_rss_mb']:.0f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def disc_geometry(template: HexTemplate, nodes: np.ndarray, units: list[str]) -> pd.DataFrame:
+    """Per functional unit's disc: the area (mm²) of its two bounding endplate node layers (the disc's
+    cross-section as meshed, the quads' areas summed) and its mean height (mm, node to node between them)."""
+    from spinecohort.fe.connections import body_layer
+
+    n2, quads = len(template.grid.nodes), template.grid.quads
+    rows = []
+    for unit in units:
+        up, lo = parse_unit(unit)
+        a = nodes[body_layer(template, up, 0.0) * n2 + np.arange(n2)]
+        b = nodes[body_layer(template, lo, 1.0) * n2 + np.arange(n2)]
+
+        def area(p):
+            q = p[quads]
+            return 0.5 * float(np.linalg.norm(np.cross(q[:, 2] - q[:, 0], q[:, 3] - q[:, 1]), axis=1).sum())
+
+        rows.append(
+            dict(
+                unit=f"{up}-{lo}",
+                upper_endplate_mm2=area(a),
+                lower_endplate_mm2=area(b),
+                mean_height_mm=float(np.linalg.norm(a - b, axis=1).mean()),
+            )
+        )
+    return pd.DataFrame(rows)
