@@ -279,6 +279,16 @@ class Layout:
     def rom_modes_png(self) -> str:
         return self.path("rom", "modes.png")
 
+    def rom_convergence(self, ext: str = "csv") -> str:
+        """The mesh-convergence study of the ROM (rule rom_convergence): ``csv`` table, ``md`` summary, ``png`` figure."""
+        return self.path("rom", f"convergence.{ext}")
+
+    def rom_convergence_resolution(self, resolution: str, ext: str = "csv") -> str:
+        """One template resolution of the study (rule rom_convergence_resolution): ``csv`` ROM table, ``runs``
+        the ccx decks and logs."""
+        name = resolution if ext == "runs" else f"{resolution}.{ext}"
+        return self.path("rom", "convergence", name)
+
     # bookkeeping
     def benchmark(self, rule: str, key: str | None = None) -> str:
         """Snakemake's benchmark table of a rule (``benchmarks/<rule>.tsv`` or ``benchmarks/<rule>/<key>.tsv``)."""

@@ -129,3 +129,60 @@ rule rom_modes:
         models=MODE_MODELS.to_dict("list"),
     script:
         "../scripts/rom_modes.py"
+
+
+# Mesh convergence of the ROM (docs/explanation/validation.md "Mesh convergence"): the mean's hex model built
+# and morphed at each rom.convergence resolution, its functional units solved; not in rule all (see the
+# explanation for its cost)
+from spinecohort.rom.convergence import ConvergenceStudy
+
+CONVERGENCE = ConvergenceStudy.from_config(config["rom"]["convergence"])
+
+
+rule rom_convergence_resolution:
+    input:
+        ssm=L.ssm,
+        cohort=L.cohort,
+    output:
+        table=L.rom_convergence_resolution("{resolution}"),
+        runs=directory(L.rom_convergence_resolution("{resolution}", "runs")),
+    log:
+        f"{LOGS}/rom_convergence/{{resolution}}.log",
+    benchmark:
+        L.benchmark("rom_convergence_resolution", "{resolution}")
+    wildcard_constraints:
+        resolution="|".join(CONVERGENCE.resolutions),
+    conda:
+        "../../environment.yml"
+    threads: config["rom"]["threads"]
+    params:
+        # only what a resolution's solves read: editing the list of resolutions or the criterion re-solves nothing
+        units=config["rom"]["convergence"]["units"],
+        load_cases=config["rom"]["convergence"]["load_cases"],
+        morph=config["morph"],
+        cep_diameter_fraction=config["template"].get("cep_diameter_fraction", 1.0),
+        rom=solver_config(config["rom"]),
+        fe=config["fe"],
+    script:
+        "../scripts/rom_convergence_resolution.py"
+
+
+rule rom_convergence:
+    input:
+        tables=[L.rom_convergence_resolution(r) for r in CONVERGENCE.resolutions],
+    output:
+        table=L.rom_convergence(),
+        markdown=L.rom_convergence("md"),
+        figure=L.rom_convergence("png"),
+    log:
+        f"{LOGS}/rom_convergence.log",
+    benchmark:
+        L.benchmark("rom_convergence")
+    conda:
+        "../../environment.yml"
+    threads: 1
+    params:
+        study=config["rom"]["convergence"],
+        default=config["template"]["resolution"],
+    script:
+        "../scripts/rom_convergence.py"

@@ -121,6 +121,21 @@ def log_problems(log: str, allowed_warnings: tuple[str, ...] = ()) -> list[str]:
     return problems
 
 
+def exec_peak_rss_mb(pid: int, argv: list[str]) -> float:
+    """Peak resident memory (MB) of process ``pid`` once it runs ``argv`` (VmHWM in /proc); 0 before its exec
+    (it still shares or copies its parent's memory), once it has exited, or without /proc."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            cmdline = f.read().split(b"\0")[:-1]
+        with open(f"/proc/{pid}/status") as f:
+            hwm = next((line.split()[1] for line in f if line.startswith("VmHWM:")), None)
+    except OSError:
+        return 0.0
+    if hwm is None or cmdline != [os.fsencode(a) for a in argv]:
+        return 0.0
+    return int(hwm) / 1024.0  # kB
+
+
 def run_ccx(
     inp_path: str | Path,
     workdir: str | Path,
@@ -159,11 +174,15 @@ def run_ccx(
     }
     log_path = workdir / f"{job}.log"
     t0 = time.perf_counter()
-    # the log goes straight to a file (a long NLGEOM run prints megabytes); os.wait4 gives this one
-    # process's peak memory, which the benchmarks and the cluster profile report
+    # the log goes straight to a file (a long NLGEOM run prints megabytes).  Peak memory: ccx's own high-water
+    # mark, polled; wait4's ru_maxrss is at least the RSS of the process that forked it (Linux keeps the
+    # pre-exec high-water mark), i.e. of this Python process, whatever ccx used
+    hwm = 0.0
     with open(log_path, "w") as out:
-        proc = subprocess.Popen([exe, "-i", job], cwd=workdir, env=env, stdout=out, stderr=subprocess.STDOUT)
+        argv = [str(exe), "-i", job]
+        proc = subprocess.Popen(argv, cwd=workdir, env=env, stdout=out, stderr=subprocess.STDOUT)
         while True:
+            hwm = max(hwm, exec_peak_rss_mb(proc.pid, argv))
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
             if pid:
                 break
@@ -175,7 +194,7 @@ def run_ccx(
     seconds = time.perf_counter() - t0
     returncode = os.waitstatus_to_exitcode(status)
     proc.returncode = returncode
-    peak_mb = usage.ru_maxrss / 1024.0  # kB on Linux
+    peak_mb = hwm if hwm > 0 else usage.ru_maxrss / 1024.0  # no /proc, or done before the first poll
     log = log_path.read_text(errors="replace")
     problems = log_problems(log, allowed_warnings)
     if returncode not in allowed_returncodes or problems:

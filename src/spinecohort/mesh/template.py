@@ -62,6 +62,8 @@ class TemplateResolution:
 
 
 TEMPLATE_RESOLUTIONS = {
+    #: below the default, for the mesh-convergence study only (docs/explanation/validation.md "Mesh convergence")
+    "coarser": TemplateResolution(core_cells=3, rings=3, body_layers=3, disc_layers=2),
     "coarse": TemplateResolution(),
     "medium": TemplateResolution(core_cells=6, rings=5, body_layers=8, disc_layers=5),
     "fine": TemplateResolution(core_cells=12, rings=9, body_layers=14, disc_layers=8),

@@ -288,6 +288,7 @@ REPORT_KEYS = (
     "sensitivity",
     "mode_levels",
     "mode_units",
+    "convergence",
 )
 
 

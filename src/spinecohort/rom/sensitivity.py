@@ -86,7 +86,7 @@ def mesh_digest(template: HexTemplate, points: np.ndarray) -> str:
 
 
 #: modules of the ROM stage that only compare or gather (their edits leave every solution valid)
-_NOT_SOLVER = {"compare.py", "sensitivity.py", "modes.py"}
+_NOT_SOLVER = {"compare.py", "sensitivity.py", "modes.py", "convergence.py"}
 
 
 @functools.cache  # the source of a running process does not change: read once, not per variant
