@@ -95,11 +95,12 @@ def test_strut_force_from_its_nodes_equals_the_reaction_ccx_puts_on_its_fixed_en
 
 
 def test_struts_are_summed_by_joint_from_their_set_names_one_or_several_a_joint():
-    # one strut on the left, two on the right (FACET_<up><lo>_<side>_<k>), an extension stop: the right joint's
+    # one strut on the left, two on the right (FACET_<up><lo>_<side><k>, as spinecohort.fe.facets names a joint's
+    # struts), an extension stop: the right joint's
     # force is the sum of its two struts'; each strut is 10 mm long with 1 N/mm past no clearance
     table = ((-10.0, -10.0), (0.0, 0.0), (0.0, 10.0))
     nodes = np.array([[0.0, 0, 0], [0, 0, 10], [5, 0, 0], [5, 0, 10], [9, 0, 0], [9, 0, 10], [0, 5, 0], [0, 5, 10]])
-    names = ["FACET_L4L5_L", "FACET_L4L5_R_1", "FACET_L4L5_R_2", "FACET_TIP_L4L5_L"]
+    names = ["FACET_L4L5_L", "FACET_L4L5_R1", "FACET_L4L5_R2", "FACET_TIP_L4L5_L"]
     fe = FEModel(
         nodes,
         {"FACETS": ("SPRINGA", np.array([[0, 1], [2, 3], [4, 5], [6, 7]]))},

@@ -29,8 +29,9 @@ from spinecohort.fe.writers import format_id_list
 
 #: the nucleus of a disc: D_L4L5_NP -> (L4, L5)
 NUCLEUS_SET = re.compile(r"^D_([TL]\d{1,2})([TL]\d{1,2}|S1)_NP$")
-#: a facet contact strut: FACET_L4L5_R, FACET_L4L5_R_3, FACET_TIP_L4L5_L -> (TIP_, L4, L5, R, 3)
-FACET_SET = re.compile(r"^FACET_(TIP_)?([TL]\d{1,2})([TL]\d{1,2}|S1)_([LR])(?:_(\w+))?$")
+#: a facet contact strut: FACET_L4L5_R, FACET_L4L5_R3 (the joint's third strut, `spinecohort.fe.facets`),
+#: FACET_L4L5_R_3, FACET_TIP_L4L5_L -> (TIP_, L4, L5, R, 3)
+FACET_SET = re.compile(r"^FACET_(TIP_)?([TL]\d{1,2})([TL]\d{1,2}|S1)_([LR])(?:_?(\w+))?$")
 #: the node set of every facet strut's end nodes in a ROM deck (their displacements give the strut forces)
 FACET_NODES = "FACETNODES"
 
