@@ -551,7 +551,7 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
         assert table[-1] == (0.0, 20.0) and table[-2][0] == 0.0 and table[0][0] < 0.0
         if name.startswith("FACET_TIP_"):
             lower = name[len("FACET_TIP_") :].split("_")[0][2:]  # e.g. FACET_TIP_L2L3_R -> L3
-            assert table[-2][1] == -FacetContact().tip_clearance_mm  # the stop's clearance (default 2.0 mm)
+            assert table[-2][1] == -FacetContact().tip_clearance_mm  # the stop's clearance (default 1.05 mm)
             np.testing.assert_allclose(direction, vertebra_frame(template, template.nodes, lower)[0][:, 2], atol=1e-12)
         else:
             assert table[-2][1] == -0.5

@@ -65,7 +65,7 @@ class FacetContact:
         ("L3", 50.0),
         ("L5", 50.0),
     )
-    tip_clearance_mm: float | None = 2.0
+    tip_clearance_mm: float | None = 1.05
     tip_stiffness_n_per_mm: float = 200.0
     #: the contact element: a compression-only SPRINGA strut of this length (mm) along the contact direction,
     #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose
