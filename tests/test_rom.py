@@ -633,13 +633,14 @@ def test_the_extension_stop_limits_extension_and_leaves_flexion_alone(template, 
     # below and the stop closes; in flexion the tip moves cranially and it stays open.  So the stop must lower
     # extension and leave flexion unchanged -- which is what gives lumbar flexion > extension (Niosi et al.
     # 2006, L3-L4: 3.7 > 3.3 deg one side; without the stop the vertical lumbar joint gap never closes in
-    # extension).  Test-config mean, L3-L4 unit, 7.5 N.m, the calibrated materials.
+    # extension).  Test-config mean, L3-L4 unit, 7.5 N.m, the materials calibrated on it.
     from dataclasses import replace
 
     kw = Settings().deck_kw()
+    mats = primitive_materials()
     rom = {}
-    for name, facets in (("stop", FacetContact()), ("none", replace(FacetContact(), tip_clearance_mm=None))):
-        m = extract_rom_model(template, template.nodes, "L3", "L4", facets=facets)
+    for name, facets in (("stop", mats.facets), ("none", replace(mats.facets, tip_clearance_mm=None))):
+        m = extract_rom_model(template, template.nodes, "L3", "L4", materials=mats, facets=facets)
         for case in ("flexion", "extension"):
             r = run_case(m, case, tmp_path / name, **kw)
             assert r.load_fraction == 1.0
