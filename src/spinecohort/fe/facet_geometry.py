@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 #: a node of one surface faces the other when a node of the other lies within this distance (mm) of it in the
 #: contact plane's projection (the template's skin spacing is ~1-2 mm)
@@ -82,7 +81,7 @@ def joint_geometry(
     same where they face each other, and wrong where the two patches lie side by side (T11-T12 of the real mean,
     whose patches are ~7 x 3.5 mm: its normal came out 135-141 deg from cranial).  Where fewer than 3 nodes face
     the other surface the contact points spread over both surfaces."""
-    from scipy.spatial import ConvexHull
+    from scipy.spatial import ConvexHull, cKDTree  # here: the shard jobs import this module, never call it
 
     _, n_s = plane_normal(sap)
     _, n_i = plane_normal(iap)

@@ -24,7 +24,6 @@ site has them.  Units: mm, degrees.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 #: the ligaments that can be fibre bundles, and the template's default fibre count of each (config
 #: ``fe.ligaments.<group>.fibres``); the others stay one spring
@@ -47,6 +46,8 @@ def distinct_nearest(candidates: np.ndarray, targets: np.ndarray, period: float 
     """Index into `candidates` (C,) of a distinct candidate for each of the `targets` (K,) scalars, the total
     distance least (an assignment); `period`: distances wrap (angles).  Fewer candidates than targets: each
     candidate once, the targets nearest to them."""
+    from scipy.optimize import linear_sum_assignment  # here: the shard jobs import this module, never call it
+
     d = np.abs(candidates[None, :] - np.asarray(targets)[:, None])
     if period is not None:
         d = np.minimum(d, period - d)
