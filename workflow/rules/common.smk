@@ -3,6 +3,7 @@ from pathlib import Path
 
 from spinecohort.config import ConfigError, cohort_files, cohort_layout, validate_config
 from spinecohort.layout import Layout
+from spinecohort.mesh.ligament_sites import fibres_per_ligament
 from spinecohort.store.zarr_store import n_models, n_shards
 
 try:

@@ -19,9 +19,7 @@ rule hex_template:
     params:
         resolution=config["template"]["resolution"],
         cep_diameter_fraction=config["template"].get("cep_diameter_fraction", 1.0),
-        fibres={
-            g: int(v.get("fibres", 1)) for g, v in config["fe"]["ligaments"].items()
-        },
+        fibres=fibres_per_ligament(config["fe"]["ligaments"]),
     script:
         "../scripts/hex_template.py"
 

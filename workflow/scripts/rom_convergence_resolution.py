@@ -6,6 +6,7 @@ from spinecohort.cohort.loading import load_cohort_npz
 from spinecohort.fe.calculix import find_ccx
 from spinecohort.fe.materials import materials_from_config
 from spinecohort.logs import to_file
+from spinecohort.mesh.ligament_sites import fibres_per_ligament
 from spinecohort.mesh.morph import MorphParameters
 from spinecohort.rom.convergence import morphed_template, solve_resolution
 from spinecohort.ssm.model import SSM
@@ -22,6 +23,7 @@ with to_file(snakemake.log[0]) as log:
         cohort.landmarks,
         MorphParameters(**snakemake.params.morph),
         snakemake.params.cep_diameter_fraction,
+        fibres_per_ligament(snakemake.params.fe["ligaments"]),
     )
     # at most as many parallel ccx runs as the scheduler gave this job (--set-threads, --cores)
     rom = {**snakemake.params.rom, "threads": min(int(snakemake.params.rom["threads"]), snakemake.threads)}

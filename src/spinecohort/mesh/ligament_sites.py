@@ -228,3 +228,9 @@ def template_ligaments(
     if joints:
         sites["facet_joints"] = np.asarray(joints, dtype=np.int64)
     return lig, groups, sites, {g: k for g, k in k_of.items() if k > 1}
+
+
+def fibres_per_ligament(ligaments: dict) -> dict[str, int]:
+    """Fibres per ligament group from the config's ``fe.ligaments`` block (``fibres``, default 1): what
+    `spinecohort.mesh.template.build_template` bundles at the insertion sites."""
+    return {group: int(law.get("fibres", 1)) for group, law in ligaments.items()}

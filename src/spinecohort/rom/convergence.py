@@ -91,14 +91,16 @@ def morphed_template(
     landmarks,
     morph: MorphParameters,
     cep_diameter_fraction: float = 1.0,
+    fibres: dict[str, int] | None = None,
 ) -> tuple[HexTemplate, np.ndarray, dict]:
     """The template at ``resolution`` (a preset's name or a `TemplateResolution`) built on the mean and morphed onto it, as rules hex_template and
-    morph_template do: (template, morphed nodes (N, 3) mm, mesh summary).  The summary counts the whole
+    morph_template do, with `fibres` per ligament group as rule hex_template bundles them: (template, morphed nodes
+    (N, 3) mm, mesh summary).  The summary counts the whole
     model's hexes with a scaled Jacobian <= 0 (``inverted``); the morph rule refuses such a mean, the study
     records it and solves the units, whose own hexes `solve_model` checks."""
     preset = TEMPLATE_RESOLUTIONS[resolution] if isinstance(resolution, str) else resolution
     res = dataclasses.replace(preset, cep_diameter_fraction=float(cep_diameter_fraction))
-    template = build_template(mean_points, mean_faces, landmarks, res)
+    template = build_template(mean_points, mean_faces, landmarks, res, fibres=fibres)
     nodes, _ = morph_template(template, mean_points, mean_faces, landmarks, morph)
     sj = scaled_jacobian(nodes, template.hexes)
     bad = np.flatnonzero(sj <= 0)
