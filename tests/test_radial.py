@@ -61,7 +61,7 @@ def test_block_lands_on_wall_and_dished_endplate_without_folding():
     inner = n_core + (grid.shell_ring - 2) * m + np.arange(m)
     body = _dished_cylinder()
     block = _block(grid)
-    planar = in_plane_map(block, grid.outer, np.arange(n_core), ring_lines(grid, cb), body)
+    planar = in_plane_map(block, grid.outer, np.arange(n_core), ring_lines(grid, cb), body, rim_depth_mm=2.0)
     mapped = axial_map(planar, grid.outer, inner, body)
     # the wall nodes of the inner layers are on the cylinder (chord sag of 3-degree facets: 0.014 mm)
     r_wall = np.linalg.norm(mapped[1:-1][:, grid.outer, :2], axis=2)

@@ -23,7 +23,15 @@ import pandas as pd
 
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
 from spinecohort.mesh.quality.verdict import scaled_jacobian
-from spinecohort.mesh.radial import axial_map, closed_body, in_plane_map, plate_map, ring_lines, shared_outline
+from spinecohort.mesh.radial import (
+    RIM_DEPTH_MM,
+    axial_map,
+    closed_body,
+    in_plane_map,
+    plate_map,
+    ring_lines,
+    shared_outline,
+)
 from spinecohort.mesh.registration import nonrigid_register, surface_distance
 from spinecohort.mesh.template import HexTemplate, OGrid, core_boundary_ids, fill_discs
 from spinecohort.mesh.template import local_faces as _faces_of
@@ -51,6 +59,7 @@ class MorphParameters:
     project: bool = True  # final closest-point projection of the surface nodes
     surface_map: str = "closest"  # bodies: closest (closest points, `project`) | rays (:mod:`spinecohort.mesh.radial`)
     min_scaled_jacobian: float = 0.3  # a registration layer is kept only if the block stays above this
+    rim_depth_mm: float = RIM_DEPTH_MM  # surface_map rays: the endplate's outline is the wall's this far under the rim
 
 
 def _closest_points(points: np.ndarray, target: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -209,7 +218,9 @@ def _multilayer_valid(flat, surf_ids, hexes, target, faces, params: MorphParamet
     return current, history
 
 
-def ray_morphed_bodies(template: HexTemplate, mean_points, mean_faces, landmarks: Landmarks) -> dict[str, np.ndarray]:
+def ray_morphed_bodies(
+    template: HexTemplate, mean_points, mean_faces, landmarks: Landmarks, rim_depth_mm: float
+) -> dict[str, np.ndarray]:
     """Every body block mapped onto its closed body surface by rays (:mod:`spinecohort.mesh.radial`): in-plane,
     then the two endplate layers facing each other across each disc given a shared outline, then axial.
     Returns level -> (n_layers, n2, 3) mm."""
@@ -222,7 +233,7 @@ def ray_morphed_bodies(template: HexTemplate, mean_points, mean_faces, landmarks
         ids = [i for i, ly in enumerate(template.layers) if ly["kind"] == "body" and ly["level"] == lv]
         body_ids = landmarks.body[lv]
         bodies[lv] = closed_body(mean_points[body_ids], _faces_of(mean_faces, body_ids))
-        blocks[lv] = in_plane_map(hex_layers[ids], grid.outer, np.arange(n_core), lines, bodies[lv])
+        blocks[lv] = in_plane_map(hex_layers[ids], grid.outer, np.arange(n_core), lines, bodies[lv], rim_depth_mm)
     for upper, lower in zip(LEVELS[:-1], LEVELS[1:]):  # LEVELS run cranial to caudal
         blocks[lower][-1], blocks[upper][0] = shared_outline(blocks[lower][-1], blocks[upper][0])
     s1 = hex_layers[[i for i, ly in enumerate(template.layers) if ly["kind"] == "s1"]]
@@ -256,7 +267,11 @@ def morph_template(
         for lv in LEVELS
     ]
     parts.append(("S1", [0], landmarks.endplate_surface("sup", "S1")))
-    rays = ray_morphed_bodies(template, mean_points, mean_faces, landmarks) if params.surface_map == "rays" else {}
+    rays = (
+        ray_morphed_bodies(template, mean_points, mean_faces, landmarks, params.rim_depth_mm)
+        if params.surface_map == "rays"
+        else {}
+    )
     for k, (name, layer_ids, target_ids) in enumerate(parts):
         block = hex_layers[layer_ids]  # (nl, n2, 3)
         is_surface = np.zeros(block.shape[:2], bool)

@@ -23,6 +23,8 @@ import numpy as np
 
 from spinecohort.mesh.vtk_mesh import surface
 
+#: depth (mm) under the endplate's rim at which the wall gives the endplate layers their outline
+RIM_DEPTH_MM = 2.0
 #: ray-triangle pairs per chunk of the vectorised test (memory ~ chunk x 10 floats)
 _CHUNK_PAIRS = 4_000_000
 
@@ -83,27 +85,53 @@ def _interp_periodic(angle: np.ndarray, at: np.ndarray, values: np.ndarray) -> n
     return np.interp(angle, np.r_[a[-1] - 2 * np.pi, a, a[0] + 2 * np.pi], np.r_[v[-1], v, v[0]])
 
 
+def layer_normal(layer: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """Unit normal (3,) of a planar node layer (n, 3) mm (total least squares), on the side of ``towards`` (3,)."""
+    n = np.linalg.svd(layer - layer.mean(0), full_matrices=False)[2][-1]
+    return n if n @ towards > 0 else -n
+
+
+def endplate_rays(layer: np.ndarray, outer: np.ndarray, inward: np.ndarray, rim_depth_mm: float):
+    """The rays that give an endplate layer (n2, 3) mm its outline: (origins (m, 3) mm, unit directions (m, 3),
+    the outer nodes' distances (m,) mm from the layer's centre along them).  They run in the layer's own plane
+    (the endplate's fitted plane, tilted against the body's axis where the body is a wedge), ``rim_depth_mm``
+    inside the body along its normal (on the side of ``inward``), from the centre towards each outer node: the
+    outline is the wall's at that depth, the same whatever the number of layers."""
+    normal = layer_normal(layer, inward)
+    rel = layer[outer] - layer.mean(0)
+    rel -= (rel @ normal)[:, None] * normal
+    r = np.linalg.norm(rel, axis=1)
+    origins = np.tile(layer.mean(0) + rim_depth_mm * normal, (len(outer), 1))
+    return origins, rel / r[:, None], r
+
+
 def in_plane_map(
-    block: np.ndarray, outer: np.ndarray, core_ids: np.ndarray, ring_line: tuple, body: tuple
+    block: np.ndarray, outer: np.ndarray, core_ids: np.ndarray, ring_line: tuple, body: tuple, rim_depth_mm: float
 ) -> np.ndarray:
-    """Each node layer of ``block`` (nl, n2, 3) mm scaled in its plane along rays from its centre to the wall.
+    """Each node layer of ``block`` (nl, n2, 3) mm scaled in its plane along rays from its centre to the wall,
+    the endplate layers to the wall ``rim_depth_mm`` inside the body (:func:`ray_origins`).
 
     outer: (m,) outer-ring node ids; core_ids: ids of the core block's nodes; ring_line = (ring node ids,
     their core-boundary node, their outer node, their fraction along that line); body = (vertices, faces)."""
     nl = block.shape[0]
     centre = block.mean(axis=1)  # (nl, 3)
     axis = block[-1].mean(0) - block[0].mean(0)
-    axis /= np.linalg.norm(axis)
+    height = float(np.linalg.norm(axis))
+    axis /= height
+    if not 0.0 <= rim_depth_mm < height / 2:
+        raise ValueError(
+            f"rim depth {rim_depth_mm} mm: must be >= 0 and under half the body block's height {height:.2f} mm"
+        )
     rel = block[:, outer] - centre[:, None]
     rel_plane = rel - (rel @ axis)[..., None] * axis
     r_tmpl = np.linalg.norm(rel_plane, axis=2)  # (nl, m)
     dirs = rel_plane / r_tmpl[..., None]
-    origins = np.repeat(centre, len(outer), axis=0)
-    r_wall = farthest_hits(origins, dirs.reshape(-1, 3), *body).reshape(nl, -1)
-    ratio = r_wall / r_tmpl
-    ratio[1:-1] = _fill_missing(ratio[1:-1].ravel(), block[1:-1, outer].reshape(-1, 3)).reshape(nl - 2, -1)
-    if nl > 2:  # the endplate layers take the ratios of their neighbours (the rim bevel)
-        ratio[0], ratio[-1] = ratio[1], ratio[-2]
+    origins = np.repeat(centre[:, None], len(outer), axis=1)
+    ray_dirs, r_ray = dirs.copy(), r_tmpl.copy()
+    for k, inward in ((0, axis), (nl - 1, -axis)):  # the endplate layers: rays in their own planes, under the rim
+        origins[k], ray_dirs[k], r_ray[k] = endplate_rays(block[k], outer, inward, rim_depth_mm)
+    hits = farthest_hits(origins.reshape(-1, 3), ray_dirs.reshape(-1, 3), *body)
+    ratio = _fill_missing(hits / r_ray.ravel(), block[:, outer].reshape(-1, 3)).reshape(nl, -1)
     u = dirs[:, 0]  # a reference direction per layer for the angle about the axis
     out = block.copy()
     for k in range(nl):  # a handful of layers; every array operation inside is over the layer's nodes
