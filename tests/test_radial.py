@@ -77,6 +77,35 @@ def test_block_lands_on_wall_and_dished_endplate_without_folding():
     assert sj.min() > 0.3
 
 
+def _waisted_body(half_height_mm=15.0):
+    """A closed body of revolution, flat caps at z = +-15 mm, its wall flaring towards the endplates as a vertebral
+    body's does: r(z) = 14 + 0.02 z^2 mm (14 mm at mid-height, 18.5 mm at the caps)."""
+    cyl = pv.Cylinder(radius=1.0, height=2 * half_height_mm, direction=(0, 0, 1), resolution=120, capping=True)
+    mesh = cyl.triangulate().subdivide(4, "linear").clean()
+    v = np.asarray(mesh.points, dtype=float)
+    v[:, :2] *= (14.0 + 0.02 * v[:, 2] ** 2)[:, None]
+    return v, np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
+
+
+@pytest.mark.parametrize("layers", [4, 9, 15])
+def test_endplate_outline_is_the_wall_at_the_rim_depth_whatever_the_layer_count(layers):
+    """The endplate layers (z = +-12 mm) take the wall's radius 2 mm inside them, r(10) = 14 + 0.02 * 100 = 16 mm,
+    with 3, 8 or 14 body element layers (the coarser, medium and fine presets); the radius of the layer next to
+    them (r(4) = 14.32 mm with 3 layers, r(9) = 15.62 mm with 8) would make the outline a property of the mesh."""
+    grid = ogrid(TEMPLATE_RESOLUTIONS["coarse"])
+    cb = core_boundary_ids(TEMPLATE_RESOLUTIONS["coarse"].core_cells)
+    n_core = len(grid.nodes) - grid.shell_ring * len(grid.outer)
+    block = _block(grid, layers=layers)
+    out = in_plane_map(block, grid.outer, np.arange(n_core), ring_lines(grid, cb), _waisted_body(), rim_depth_mm=2.0)
+    r = np.linalg.norm(out[[0, -1]][:, grid.outer, :2], axis=2)
+    # the facets are flat between vertex rings 1.875 mm apart (z = 9.375, 11.25): r = 16.016 mm on that chord at
+    # z = 10, less at most 16 (1 - cos 1.5 deg) = 0.005 mm between the 3-degree facets' corners
+    assert np.abs(r - 16.0).max() < 0.02
+    assert np.allclose(out[[0, -1], :, 2], block[[0, -1], :, 2])  # in the layers' own planes
+    with pytest.raises(ValueError, match="rim depth"):
+        in_plane_map(block, grid.outer, np.arange(n_core), ring_lines(grid, cb), _waisted_body(), rim_depth_mm=12.0)
+
+
 def test_shared_outline_is_the_mean_in_plane_shape_at_each_height():
     grid = ogrid(TEMPLATE_RESOLUTIONS["coarse"])
     lower = _block(grid, half_mm=(20.0, 16.0), height_mm=0.0, layers=1)[0]
@@ -124,6 +153,22 @@ def test_rays_morph_real_lumbar_bodies_and_discs_without_inverted_elements(real_
     assert sj[lumbar].min() > 0.0
     # the lumbar walls and endplates are met: mean surface distance well under a millimetre
     assert (report.set_index("part").loc[["L1", "L2", "L3", "L4", "L5"], "distance_final_mean_mm"] < 0.6).all()
+
+
+def test_disc_area_of_a_real_mean_is_the_same_at_coarse_and_medium(real_mean):
+    """The L3-L4 disc's cross-section (its endplate node layers' quad areas) at the coarse and medium presets
+    (4 and 8 body element layers, 16 and 24 rim nodes): measured 1515 and 1530 mm^2 (1.0 %, what a polygon of 16
+    against 24 nodes on the same oval loses, ~1.4 %); with the outline of the layer next to the endplate,
+    1447 and 1546 mm^2 (6.8 %)."""
+    from spinecohort.rom.convergence import disc_geometry
+
+    mean, c = real_mean
+    area = {}
+    for name in ("coarse", "medium"):
+        t = build_template(mean, c.faces, c.landmarks, TEMPLATE_RESOLUTIONS[name])
+        nodes, _ = morph_template(t, mean, c.faces, c.landmarks, MorphParameters(max_layers=0, surface_map="rays"))
+        area[name] = float(disc_geometry(t, nodes, ["L3-L4"]).upper_endplate_mm2.iloc[0])
+    assert abs(area["medium"] / area["coarse"] - 1.0) < 0.02, area
 
 
 def test_hex_endplate_planes_of_a_real_mean_follow_the_rim_band(real_mean):
