@@ -139,3 +139,8 @@ def test_disc_geometry_scales_as_area_and_length(template):
     assert np.allclose(g2["upper_endplate_mm2"], 4 * g1["upper_endplate_mm2"])
     assert np.allclose(g2["mean_height_mm"], 2 * g1["mean_height_mm"])
     assert (g1["upper_endplate_mm2"].iloc[0] > g1["upper_endplate_mm2"].iloc[1]) and (g1["mean_height_mm"] > 0).all()
+    # a projection never adds area; the placed template's endplate layers are planes across the disc's axis, within
+    # the tilt of the two endplate planes (a few degrees: cos 5 deg = 0.996)
+    assert np.allclose(g2["upper_projected_mm2"], 4 * g1["upper_projected_mm2"])
+    ratio = g1["upper_projected_mm2"] / g1["upper_endplate_mm2"]
+    assert ((ratio <= 1.0 + 1e-12) & (ratio > 0.99)).all(), ratio

@@ -12,9 +12,12 @@ monotone along its rays, so neither can fold a layer or a column:
   (:func:`axial_map`): a concave endplate is followed node by node, without the sideways slide of a
   closest-point projection, which on a concave or partial endplate patch folds the layer under it.
 
-The endplate layers take the in-plane ratios of the layer next to them: at the rim the wall rounds into the
-endplate, and a ray in the endplate's own plane would cut the bevel.  The openings of the labeled body (where
-the pedicles leave it) are closed first (:func:`closed_body`).
+The endplate layers take their outline from the wall a fixed depth (``rim_depth_mm``) inside the body: at the
+rim the wall rounds into the endplate, and a ray in the endplate's own plane would cut that rounding.  Their rays
+run in the layer's own plane (the endplate's fitted plane, tilted against the axis in a wedged body), shifted
+along its normal (:func:`endplate_rays`), so the endplate's outline, hence the disc's cross-section, is the
+bone's and the same whatever the number of layers.  The openings of the labeled body (where the pedicles leave
+it) are closed first (:func:`closed_body`).
 """
 
 from __future__ import annotations
@@ -109,7 +112,8 @@ def in_plane_map(
     block: np.ndarray, outer: np.ndarray, core_ids: np.ndarray, ring_line: tuple, body: tuple, rim_depth_mm: float
 ) -> np.ndarray:
     """Each node layer of ``block`` (nl, n2, 3) mm scaled in its plane along rays from its centre to the wall,
-    the endplate layers to the wall ``rim_depth_mm`` inside the body (:func:`ray_origins`).
+    the two endplate layers (first and last) to the wall ``rim_depth_mm`` inside the body (:func:`endplate_rays`;
+    at least 0, under half the block's height).
 
     outer: (m,) outer-ring node ids; core_ids: ids of the core block's nodes; ring_line = (ring node ids,
     their core-boundary node, their outer node, their fraction along that line); body = (vertices, faces)."""

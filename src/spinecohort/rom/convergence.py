@@ -267,7 +267,9 @@ def convergence_markdown(table: pd.DataFrame, default: str, finer: str, max_chan
 
 def disc_geometry(template: HexTemplate, nodes: np.ndarray, units: list[str]) -> pd.DataFrame:
     """Per functional unit's disc: the area (mm²) of its two bounding endplate node layers (the disc's
-    cross-section as meshed, the quads' areas summed) and its mean height (mm, node to node between them)."""
+    cross-section as meshed, the quads' areas summed), the upper one's projected on the plane across the disc's
+    axis (centre to centre; the outline without the concave endplate's depth) and its mean height (mm, node to
+    node between them)."""
     from spinecohort.fe.connections import body_layer
 
     n2, quads = len(template.grid.nodes), template.grid.quads
@@ -276,16 +278,18 @@ def disc_geometry(template: HexTemplate, nodes: np.ndarray, units: list[str]) ->
         up, lo = parse_unit(unit)
         a = nodes[body_layer(template, up, 0.0) * n2 + np.arange(n2)]
         b = nodes[body_layer(template, lo, 1.0) * n2 + np.arange(n2)]
+        axis = (a.mean(0) - b.mean(0)) / np.linalg.norm(a.mean(0) - b.mean(0))
 
-        def area(p):
+        def doubled_areas(p):  # (n_quads, 3): each quad's normal times twice its area
             q = p[quads]
-            return 0.5 * float(np.linalg.norm(np.cross(q[:, 2] - q[:, 0], q[:, 3] - q[:, 1]), axis=1).sum())
+            return np.cross(q[:, 2] - q[:, 0], q[:, 3] - q[:, 1])
 
         rows.append(
             dict(
                 unit=f"{up}-{lo}",
-                upper_endplate_mm2=area(a),
-                lower_endplate_mm2=area(b),
+                upper_endplate_mm2=0.5 * float(np.linalg.norm(doubled_areas(a), axis=1).sum()),
+                lower_endplate_mm2=0.5 * float(np.linalg.norm(doubled_areas(b), axis=1).sum()),
+                upper_projected_mm2=0.5 * float(np.abs(doubled_areas(a) @ axis).sum()),
                 mean_height_mm=float(np.linalg.norm(a - b, axis=1).mean()),
             )
         )
