@@ -44,8 +44,9 @@ class LevelShape:
     """Per-level targets of :func:`map_vertebra` (mm, deg).
 
     ``body``: endplate width, depth, anterior and posterior body height; ``arch_xyz``: scale of the posterior
-    elements in x, y, z; ``facet_sup_deg`` / ``facet_inf_deg``: rotation of the superior / inferior articular
-    processes towards the coronal plane; ``spinous_tip``: the target tip (local, mm) or None to keep it;
+    elements in x, y, z; ``facet_sup_deg`` / ``facet_inf_deg``: the swirl's turn at the superior / inferior
+    articular processes (positive turns a lumbar superior facet, facing medially, towards and past the coronal
+    plane); ``spinous_tip``: the target tip (local, mm) or None to keep it;
     ``taper``: the fraction by which the body narrows from its middle to its anterior wall (a heart-shaped
     outline; 0 keeps the template's)."""
 
