@@ -25,9 +25,10 @@ Steps (the data README lists them with the numbers this script prints):
    and wedged to its anterior and posterior heights (:data:`BODY_ANCHORS`; narrowed anteriorly to a heart
    shape, :data:`TAPER_ANCHORS`; each scale corrected three times by
    the measured / asked ratio of :mod:`spinecohort.anatomy.morphometry`), the posterior elements scaled by
-   :data:`ARCH_ANCHORS` and by the height of a motion segment, the articular processes turned towards the
-   coronal plane (:data:`FACET_TARGET_DEG`; a turn that would fold the surface is damped in quarter steps),
-   the spinous process turned and stretched onto the myo-sim level's spinous tip.  Every level keeps the
+   :data:`ARCH_ANCHORS` and by the height of a motion segment, the articular pillars swirled about their
+   vertical axes until the superior articular faces face posteriorly and laterally (:data:`FACET_FRONTAL_DEG`,
+   :data:`FACET_PATCH_LAG_DEG`; a level whose map folds a triangle has its two joints' turns damped in
+   5 deg steps), the spinous process turned and stretched onto the myo-sim level's spinous tip.  Every level keeps the
    template's vertex order and triangles, so the template's labels hold by index.  The level is placed by the
    myo-sim posture carried onto the Remus column: its body centre and axes are those of the myo-sim level
    under the similarity that takes myo-sim lumbar1's landmarks onto Remus L1's.
@@ -150,9 +151,21 @@ ARCH_ANCHORS = ((11.0, 19.4 / 23.7), (12.0, 22.2 / 23.7))
 #: outline): a quarter at T3-T10, none at the transitional T1 and T12; the calibrated widths and depths do not
 #: change with it.
 TAPER_ANCHORS = ((1.0, 0.0), (3.0, 0.25), (10.0, 0.25), (12.0, 0.0))
-#: Superior-facet transverse angle (deg to the mid-sagittal plane) the articular processes are turned to:
-#: the middle of Masharawi 2004's ranges, T1-T11 60-65 (coronal), T12 26-34 (the transition to sagittal).
-FACET_TARGET_DEG = {**{f"T{k}": 62.5 for k in range(1, 12)}, "T12": 30.0}
+#: Frontal angle (deg) of each level's superior articular face, in the convention of
+#: :func:`spinecohort.fe.facet_geometry.facet_angles_deg` (the face's outward normal from posterior, positive
+#: medially, negative laterally): T1-T11 face posteriorly and laterally, 25-30 deg from the frontal plane
+#: (Masharawi 2004: 60-65 deg to the mid-sagittal plane; Gray's Anatomy: thoracic superior facets face
+#: backwards, a little laterally and upwards), T12 faces medially, 26-34 deg to the mid-sagittal plane (the
+#: thoracolumbar transition at T11-T12).  The articular processes are turned to the middle of each range.
+FACET_FRONTAL_DEG = {**{f"T{k}": -27.5 for k in range(1, 12)}, "T12": 90.0 - 30.0}
+#: How far (deg) the template's articular face (:func:`articular_faces`, on which the turn is computed) is
+#: turned beyond its level's target: the contact patches (the process within 4 mm of its partner, found only
+#: once the levels are placed and separated) reach into the swirl's fade and turn less.  With this lag the
+#: reference's T2-T11 patches face 18-27 deg laterally (mean 21.6; a larger turn folds T1 and T2) and T12's
+#: 59-62 deg medially (``tests/test_level_map.py``).
+FACET_PATCH_LAG_DEG = {**{f"T{k}": -17.0 for k in range(1, 12)}, "T12": -8.0}
+#: the step (deg) by which a turn that folds the surface is damped
+FACET_DAMP_STEP_DEG = 5.0
 
 
 def _interp(anchors, k: float) -> float:
@@ -208,6 +221,51 @@ def fit_scales(t: Template, shape: LevelShape, info: dict, rounds: int = 3) -> L
     return asked
 
 
+def articular_faces(t: Template, faces: np.ndarray) -> dict[str, np.ndarray]:
+    """The template's superior articular faces: the vertices of each superior process whose outward normal
+    points within 60 deg of the way to the inferior process of the same side in the transverse plane (where
+    the inferior process of the level above lies when levels of this shape stack)."""
+    from spinecohort.anatomy.labeling import vertex_normals
+
+    n = vertex_normals(t.local, faces)
+    out = {}
+    for side in ("left", "right"):
+        sup = t.regions[f"facet_sup_{side}"]
+        to = t.local[t.regions[f"facet_inf_{side}"]].mean(0) - t.local[sup]
+        to[:, 2] = 0.0
+        to /= np.linalg.norm(to, axis=1, keepdims=True)
+        out[side] = sup[np.sum(n[sup] * to, axis=1) > 0.5]
+    return out
+
+
+def face_frontal_deg(loc: np.ndarray, faces: np.ndarray, face: np.ndarray, side: float) -> float:
+    """Frontal angle (deg, :func:`spinecohort.anatomy.morphometry.facet_facing`) of the articular face
+    ``face`` of a mapped template ``loc`` (x right, y anterior, z superior); ``side`` -1 left, +1 right."""
+    from spinecohort.anatomy.labeling import vertex_normals
+
+    q = loc[:, [1, 0, 2]]
+    return M.facet_facing(q[face], vertex_normals(q, faces)[face].sum(0), side)
+
+
+def facet_turn(t: Template, shape: LevelShape, faces: np.ndarray, target_deg: float, rounds: int = 3) -> float:
+    """The turn (deg, both processes alike) that brings the mean frontal angle of the mapped template's
+    superior articular faces (:func:`articular_faces`) to ``target_deg``: the angle's error fed back
+    ``rounds`` times (the swirl turns the face's outer part by less than the whole turn)."""
+    face = articular_faces(t, faces)
+    turn = 0.0
+    for _ in range(rounds + 1):
+        loc = map_vertebra(t, replace(shape, facet_sup_deg=turn, facet_inf_deg=turn))
+        now = np.mean([face_frontal_deg(loc, faces, face[s], sg) for s, sg in (("left", -1.0), ("right", 1.0))])
+        turn += now - target_deg
+    return turn
+
+
+def inf_turn(sup: dict[int, float], k: int) -> float:
+    """The turn (deg) of level Tk's inferior processes: its partner's, the superior processes of T(k+1); none
+    at T12 (its partner, L1, is not turned)."""
+    return sup[k + 1] if k < 12 else 0.0
+
+
 def thoracic_levels(args, tv, tf, t_body, l1_disc_mm, log):
     """T1..T12: the thoracic template (``tv``, ``tf``, body mask ``t_body``; the Remus L1 remeshed, in L1's
     place) moved by a per-level map (:mod:`spinecohort.anatomy.level_map`) to the published body dimensions,
@@ -254,25 +312,34 @@ def thoracic_levels(args, tv, tf, t_body, l1_disc_mm, log):
             taper=_interp(TAPER_ANCHORS, k),
         )
         fits[k] = shape
-        unturned = measure_local(t, map_vertebra(t, replace(shape, spinous_tip=None)), info)
-        turns[k] = FACET_TARGET_DEG[f"T{k}"] - unturned["facet_sup_transverse"]
-    # one turn for the thoracic joints T1-T2 ... T11-T12 (their mean), so that both processes of T1-T10 turn
+        turns[k] = facet_turn(t, shape, tf, FACET_FRONTAL_DEG[f"T{k}"] + FACET_PATCH_LAG_DEG[f"T{k}"])
+    # one turn for the thoracic joints T1-T2 ... T10-T11 (their mean), so that both processes of T1-T10 turn
     # alike; each inferior process turns with its partner, the superior process of the level below
     turn = float(np.mean([turns[k] for k in range(1, 12)]))
     sup = {**{k: turn for k in range(1, 12)}, 12: turns[12]}
+    log["facet_turn_deg"] = {f"T{k}": turns[k] for k in range(1, 13)}
+    fitted = {
+        k: fit_scales(t, replace(fits[k], facet_sup_deg=sup[k], facet_inf_deg=inf_turn(sup, k)), info) for k in fits
+    }
+    # a level whose map folds a triangle has both its turns (its superior processes' joint and its inferior
+    # processes' joint) damped in small steps, until no level folds; a joint's two processes keep one turn
+    damp = dict.fromkeys(sup, 0.0)
+    while True:
+        damped = {k: float(np.sign(a) * max(abs(a) - damp[k], 0.0)) for k, a in sup.items()}
+        trials = {k: replace(fitted[k], facet_sup_deg=damped[k], facet_inf_deg=inf_turn(damped, k)) for k in fitted}
+        folding = [k for k in trials if self_intersections(map_vertebra(t, trials[k]), tf)]
+        if not folding:
+            break
+        for k in folding:
+            for j in (k, k + 1) if k < 12 else (k,):
+                damp[j] = min(damp[j] + FACET_DAMP_STEP_DEG, abs(sup[j]))
+    log["facet_damping_deg"] = {f"T{k}": damp[k] for k in damp}
     for k in range(1, 13):
-        turned = replace(fits[k], facet_sup_deg=sup[k], facet_inf_deg=sup[k + 1] if k < 12 else 0.0)
-        for damp in (1.0, 0.75, 0.5, 0.25, 0.0):
-            trial = replace(
-                turned, facet_sup_deg=damp * turned.facet_sup_deg, facet_inf_deg=damp * turned.facet_inf_deg
-            )
-            if self_intersections(map_vertebra(t, trial), tf) == 0:
-                break
-        trial = fit_scales(t, trial, info)
+        trial = trials[k]
         loc = map_vertebra(t, trial)
         if self_intersections(loc, tf):
             raise RuntimeError(f"T{k}: the fitted map folds the surface")
-        log.setdefault("thoracic_shapes", {})[f"T{k}"] = {**asdict(trial), "facet_damping": damp}
+        log.setdefault("thoracic_shapes", {})[f"T{k}"] = asdict(trial)
         world = centres[k] + loc @ rots[k].T  # local axes = the myo-sim level's upright body axes
         out[f"T{k}"] = (world, tf.copy())
     log["thoracic_size_factor"] = size

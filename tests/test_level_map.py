@@ -73,15 +73,34 @@ def test_the_taper_narrows_the_body_towards_its_anterior_wall_only():
         assert np.ptp(out[row, 0]) == pytest.approx(width), y
 
 
-def test_the_facet_turn_rotates_the_pillar_rigidly_and_the_spinous_tip_lands_on_its_target():
+def test_the_facet_turn_swirls_the_pillar_about_its_axis_and_spares_the_body():
     t = _template()
-    shape = L.LevelShape(40.0, 30.0, 24.0, 24.0, (1.0, 1.0, 1.0), facet_sup_deg=30.0, facet_inf_deg=30.0)
+    shape = L.LevelShape(40.0, 30.0, 24.0, 24.0, (1.0, 1.0, 1.0), facet_sup_deg=110.0, facet_inf_deg=110.0)
     out = L.map_vertebra(t, shape)
+    # the left pillar's axis: midway between its processes' centroids (the blocks: x -11.25 and -15, y -30,
+    # so x -13.125, y -30); every block point lies within 1.9 mm of it, inside the 6 mm core
     pillar = np.concatenate([t.regions["facet_sup_left"], t.regions["facet_inf_left"]])
-    a, b = pillar[0], pillar[-1]
-    before, after = t.local[b] - t.local[a], out[b] - out[a]
-    turn = np.degrees(np.arctan2(after[1], after[0]) - np.arctan2(before[1], before[0]))
-    assert turn == pytest.approx(-30.0)  # the left pillar turns clockwise seen from above (towards coronal)
+    axis = np.array([-13.125, -30.0])
+    assert np.allclose(
+        0.5 * (t.local[t.regions["facet_sup_left"]].mean(0) + t.local[t.regions["facet_inf_left"]].mean(0))[:2], axis
+    )
+    before, after = t.local[pillar, :2] - axis, out[pillar, :2] - axis
+    # a swirl moves every point on its circle about the axis and keeps its height
+    assert np.allclose(np.linalg.norm(after, axis=1), np.linalg.norm(before, axis=1))
+    assert np.allclose(out[pillar, 2], t.local[pillar, 2])
+    turn = np.degrees(np.arctan2(after[:, 1], after[:, 0]) - np.arctan2(before[:, 1], before[:, 0]))
+    turn = (turn + 180.0) % 360.0 - 180.0
+    # the processes' articular ends (height fraction beyond 0.2 from the pars: z >= 4 or z <= -2.75) turn by
+    # the whole 110 deg, clockwise seen from above on the left (towards and past the coronal plane)
+    ends = (out[pillar, 2] >= 4.0) | (out[pillar, 2] <= -2.75)
+    assert np.allclose(turn[ends], -110.0)
+    # at z = 0 (height fraction h = 5 / 11.25 between the centroids' heights -5 and 6.25) the angle is
+    # PARS_TURN + (1 - PARS_TURN) * smoothstep(|2h - 1| / 0.6) of the turn: with PARS_TURN 0, smoothstep(0.185)
+    # = 0.0902 of it (9.92 deg), the pars nearly unturned
+    h = 5.0 / 11.25
+    expected = 110.0 * (L.PARS_TURN + (1.0 - L.PARS_TURN) * L.smoothstep(abs(2.0 * h - 1.0) / 0.6))
+    assert expected == pytest.approx(9.92, abs=0.01)
+    assert np.allclose(turn[out[pillar, 2] == 0.0], -expected)
     assert np.allclose(out[t.regions["body"]], t.local[t.regions["body"]])  # the body is not touched
     tip = np.array([0.0, -70.0, -25.0])
     aimed = L.map_vertebra(t, L.LevelShape(40.0, 30.0, 24.0, 24.0, (1.0, 1.0, 1.0), spinous_tip=tuple(tip)))
@@ -126,3 +145,52 @@ def test_reference_thoracic_levels_share_the_template_labels_and_measure_their_t
     # thoracic bodies are smaller and shorter than lumbar ones, growing caudally
     heights = wide.loc[list(LEVELS), "body_height_posterior"]
     assert (np.diff(heights[:12]) > 0).all() and heights["T12"] < heights["L1"]
+
+
+def test_reference_thoracic_superior_facets_face_backwards_and_laterally_and_fold_nothing():
+    """Thoracic superior articular facets face posteriorly, a little laterally and upwards (Gray's Anatomy;
+    Masharawi 2004: 25-30 deg from the frontal plane at T1-T11), lumbar ones medially (T12 26-34 deg to the
+    mid-sagittal plane: the thoracolumbar transition at T11-T12).  On the vendored reference's articular
+    surfaces (the process within 4 mm of its partner), in each vertebra's own frame."""
+    from spinecohort.anatomy import morphometry as M
+    from spinecohort.anatomy.labeling import vertex_normals
+    from spinecohort.anatomy.labels import REGIONS
+    from spinecohort.anatomy.morphometry_table import measure_reference
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.anatomy.surface import self_intersections
+
+    ref = load_reference()
+    normals = vertex_normals(ref.vertices, ref.faces)
+    facing = {}
+    for i, lv in enumerate(LEVELS[:13]):
+        parts = M.parts_of_vertebra(ref.region, REGIONS, ref.level == i)
+        frame = M.vertebra_frame(
+            ref.vertices,
+            ref.landmarks.endplate_sup[lv],
+            ref.landmarks.endplate_inf[lv],
+            parts["body"],
+            M.canal_centre(ref.vertices, parts),
+        )
+        for side, sign in (("left", -1.0), ("right", 1.0)):
+            ids = ref.sets[f"facet_surface_sup_{side}"][lv]
+            outward = normals[ids].sum(0) @ frame.axes.T
+            facing[lv, side] = M.facet_facing(frame.local(ref.vertices[ids]), outward, sign)
+        # every thoracic level is one closed surface without self-intersections (the swirl folds nothing)
+        idx = ref.vertebra(i)
+        if i < 12:
+            tri = ref.faces[np.isin(ref.faces, idx).all(1)] - idx[0]
+            assert self_intersections(ref.vertices[idx], tri) == 0, lv
+    # T2-T11 (the joints T1-T2 ... T10-T11; T1's patch is the tip cap of a process without partner) face
+    # laterally, 10-35 deg from the frontal plane (Masharawi's 25-30 with room for the patches, which lag the
+    # turned articular face by a few degrees)
+    for lv in LEVELS[1:11]:
+        for side in ("left", "right"):
+            assert -35.0 <= facing[lv, side] <= -10.0, (lv, side, facing[lv, side])
+    # in Masharawi's unsigned transverse angle (morphometry's, the mean of both sides): the published 60-65 deg,
+    # at most 7 deg more coronal
+    wide = measure_reference(ref).pivot(index="level", columns="quantity", values="value")
+    assert wide.loc[list(LEVELS[1:11]), "facet_sup_transverse"].between(60.0, 72.0).all()
+    # T12's superior facets face medially (lumbar), 26-34 deg to the mid-sagittal plane: 56-64 deg frontal
+    for side in ("left", "right"):
+        assert 50.0 <= facing["T12", side] <= 70.0, side
+    assert 26.0 <= wide.loc["T12", "facet_sup_transverse"] <= 34.0

@@ -15,9 +15,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # Every published cell the reference misses, (level, quantity, source author); the reason of each group:
 EXCEPTIONS = {
-    # thoracic facets are L1 articular pillars turned 25.5 deg towards coronal (their articular patches measure
-    # 45-50 deg); the lumbar facets of the Visible Human are more sagittal than Masharawi 2004's ranges
-    *((lv, "facet_sup_transverse", "Masharawi") for lv in LEVELS),
+    # thoracic facets are L1 articular pillars swirled to face posteriorly and laterally: T6, T7 and T12 inside,
+    # the other patches a few degrees more coronal; the lumbar facets of the Visible Human are more sagittal
+    # than Masharawi 2004's ranges
+    *((lv, "facet_sup_transverse", "Masharawi") for lv in LEVELS if lv not in ("T6", "T7", "T12")),
     # the canal of the whole-vertebra surfaces is narrow (below Panjabi's mean at every level)
     *((lv, "canal_depth", "Panjabi") for lv in ("T11", "T12", "L1", "L3", "L5")),
     ("L3", "canal_width", "Panjabi"),
@@ -78,9 +79,9 @@ def test_values_are_inside_the_published_intervals_but_the_named_exceptions(tabl
     # every lumbar pedicle width is inside both Panjabi 1992 and Zindrick 1987
     ped = table[(table["quantity"] == "pedicle_width") & table["level"].str.startswith("L")]
     assert len(ped) == 10 and (ped["verdict"] == "inside").all()
-    # 97 published cells: 60 inside, 33 named exceptions, 4 means without dispersion (T11, T12 EPWu; T1, T12
+    # 97 published cells: 63 inside, 30 named exceptions, 4 means without dispersion (T11, T12 EPWu; T1, T12
     # VBHp of Panjabi 1991's text)
-    assert table["verdict"].value_counts().to_dict() == {"inside": 60, "outside": 33, "no interval": 4}
+    assert table["verdict"].value_counts().to_dict() == {"inside": 63, "outside": 30, "no interval": 4}
 
 
 def test_the_docs_hold_the_generated_table(table):

@@ -11,13 +11,22 @@ built from a partition of unity, every weight a smoothstep of a distance:
   anterior wall (the wedge); optionally narrowed towards its anterior wall (``taper``, a heart shape);
 * posterior elements (behind the posterior wall, blended in over ``blend_mm`` along the pedicles): scaled by
   the arch factors (``arch_xyz``) about the posterior wall, which stays attached to the scaled body;
-* articular processes: turned about a vertical axis through the process's centroid by the level's facet
-  rotation (the superior and the inferior process each by the turn of its joint, so each joint's two
-  processes turn alike; one turn of the whole pillar where both turns are equal);
+* articular processes: a swirl about a vertical axis through the articular pillar (midway between the
+  centroids of the superior and the inferior process of a side): every point turns about the axis by an angle
+  that depends only on its distance from the axis and its height, the full turn within ``facet_core_mm``,
+  none beyond ``facet_radius_mm``.  A map that turns each circle about the axis rigidly is one-to-one for any
+  angle, so even a turn of 110 deg (the lumbar articular face, facing medially, turned to face posteriorly and
+  laterally) folds no triangle where a rotation faded by the distance to the process folded beyond 25 deg.  The
+  angle runs from the inferior process's turn (at and below a fifth of the pillar's height) to the superior
+  process's turn (at and above four fifths) with the height, and falls to none midway between
+  them (the pars, where the pedicle meets the lamina: a turned pars twists the pedicle, whose height falls by a
+  quarter at T1 with a half turn there); each joint's two
+  processes turn about nearly the same axis by the same angle, so the joint stays congruent;
 * spinous process: turned about the transverse axis through its base and stretched along its length so that
   its tip reaches ``spinous_tip`` (its direction, caudal inclination and length).
 
-Weights: 1 on the region's vertices and falling to 0 at ``radius_mm`` from them (distance to the nearest
+The body and arch weights are smoothsteps of a coordinate; the spinous weight is 1 on the process's vertices
+and falls to 0 at ``radius_mm`` from them (distance to the nearest
 region vertex, a Lipschitz field in space), times the arch weight (0 in the body), so the map is continuous,
 smooth away from the region boundaries, and leaves the body to the body map.  Millimetres and degrees.
 """
@@ -35,8 +44,9 @@ class LevelShape:
     """Per-level targets of :func:`map_vertebra` (mm, deg).
 
     ``body``: endplate width, depth, anterior and posterior body height; ``arch_xyz``: scale of the posterior
-    elements in x, y, z; ``facet_sup_deg`` / ``facet_inf_deg``: rotation of the superior / inferior articular
-    processes towards the coronal plane; ``spinous_tip``: the target tip (local, mm) or None to keep it;
+    elements in x, y, z; ``facet_sup_deg`` / ``facet_inf_deg``: the swirl's turn at the superior / inferior
+    articular processes (positive turns a lumbar superior facet, facing medially, towards and past the coronal
+    plane); ``spinous_tip``: the target tip (local, mm) or None to keep it;
     ``taper``: the fraction by which the body narrows from its middle to its anterior wall (a heart-shaped
     outline; 0 keeps the template's)."""
 
@@ -92,10 +102,16 @@ def _rotate_in_plane(p: np.ndarray, centre: np.ndarray, angle_rad: np.ndarray, a
 
 
 def map_vertebra(
-    t: Template, shape: LevelShape, blend_mm: float = 6.0, radius_mm: float = 8.0, facet_radius_mm: float = 12.0
+    t: Template,
+    shape: LevelShape,
+    blend_mm: float = 6.0,
+    radius_mm: float = 8.0,
+    facet_core_mm: float = 4.5,
+    facet_radius_mm: float = 13.5,
 ) -> np.ndarray:
     """(N, 3) local coordinates (mm) of the template moved onto ``shape`` (module docstring); the turn of an
-    articular process fades out over ``facet_radius_mm``, the spinous process's over ``radius_mm``."""
+    articular pillar is whole within ``facet_core_mm`` of its axis and fades out at ``facet_radius_mm`` (both
+    times the arch's transverse scale), the spinous process's turn fades out over ``radius_mm``."""
     p = t.local
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     sx, sy = shape.width_mm / t.width_mm, shape.depth_mm / t.depth_mm
@@ -114,21 +130,34 @@ def map_vertebra(
     y_wall = sy * t.y_posterior
     out[:, 1] = (1 - w) * sy * y + w * (y_wall + ay * (y - t.y_posterior))
     out[:, 2] = z * ((1 - w) * sz_body + w * az)
-    # one articular pillar per side turns as a whole when both processes turn alike (two overlapping turns
-    # about different axes fold the pillar between them)
-    if shape.facet_sup_deg == shape.facet_inf_deg:
-        turns = ((("sup", "inf"), shape.facet_sup_deg),)
-    else:
-        turns = ((("sup",), shape.facet_sup_deg), (("inf",), shape.facet_inf_deg))
-    for which, angle in turns:
-        if angle == 0.0:
-            continue
-        for side, sign in (("left", -1.0), ("right", 1.0)):
-            members = np.concatenate([t.regions[f"facet_{w}_{side}"] for w in which])
-            wf = w * region_weight(p, members, facet_radius_mm)  # never into the body
-            out = _rotate_in_plane(out, out[members].mean(0), sign * np.radians(angle) * wf, (0, 1))
+    # the radii scale with the arch (the pillars of a narrower arch lie closer to the mid-line)
+    out = _swirl_pillars(out, t, shape.facet_sup_deg, shape.facet_inf_deg, ax * facet_core_mm, ax * facet_radius_mm)
     if shape.spinous_tip is not None:
         out = _aim_spinous(out, p, t, np.asarray(shape.spinous_tip, float), radius_mm, w)
+    return out
+
+
+#: the swirl's angle midway between the two processes of a pillar (the pars), as a fraction of the processes'
+#: turn: none, so the pedicle is not twisted
+PARS_TURN = 0.0
+
+
+def _swirl_pillars(
+    out: np.ndarray, t: Template, sup_deg: float, inf_deg: float, core_mm: float, radius_mm: float
+) -> np.ndarray:
+    """Both articular pillars swirled about their vertical axes (module docstring): the left one clockwise
+    seen from above by a positive turn, the right one anticlockwise (towards the coronal plane)."""
+    if sup_deg == 0.0 and inf_deg == 0.0:
+        return out
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        c_sup = out[t.regions[f"facet_sup_{side}"]].mean(0)
+        c_inf = out[t.regions[f"facet_inf_{side}"]].mean(0)
+        axis = 0.5 * (c_sup + c_inf)
+        r = np.hypot(out[:, 0] - axis[0], out[:, 1] - axis[1])
+        h = (out[:, 2] - c_inf[2]) / (c_sup[2] - c_inf[2])  # 0 at the inferior process, 1 at the superior
+        profile = PARS_TURN + (1.0 - PARS_TURN) * smoothstep(np.abs(2.0 * h - 1.0) / 0.6)
+        angle = np.radians(inf_deg + (sup_deg - inf_deg) * smoothstep((h - 0.2) / 0.6)) * profile
+        out = _rotate_in_plane(out, axis, sign * angle * smoothstep((radius_mm - r) / (radius_mm - core_mm)), (0, 1))
     return out
 
 

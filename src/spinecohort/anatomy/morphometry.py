@@ -362,6 +362,18 @@ def facet_angles(local_mm: np.ndarray) -> tuple[float, float]:
     return float(np.degrees(np.arctan2(a, r))), float(np.degrees(np.arctan2(a, s)))
 
 
+def facet_facing(local_mm: np.ndarray, outward: np.ndarray, side: float) -> float:
+    """Frontal angle (deg) of the plane fitted to facet points ``local_mm`` (N, 3) in the vertebra frame
+    (anterior, right, superior), its normal turned to the side of ``outward`` (3,) (the articular surface's
+    outward direction): the angle of the normal's transverse trace from posterior, positive when the facet
+    faces medially, negative laterally (``side`` +1 right, -1 left); the signed counterpart of the transverse
+    angle (90 minus its magnitude, for a facet facing backwards) and the convention of
+    `spinecohort.fe.facet_geometry.facet_angles_deg`."""
+    n = plane_fit(local_mm)[1]
+    n = n if n @ np.asarray(outward, float) >= 0 else -n
+    return float(np.degrees(np.arctan2(-side * n[1], -n[0])))
+
+
 def measure_vertebra(
     points_mm: np.ndarray,
     faces: np.ndarray,

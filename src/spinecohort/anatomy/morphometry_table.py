@@ -64,11 +64,12 @@ REASONS: dict[str, tuple[tuple[str, ...], str]] = {
         "15.5 mm of 20 central-Indian columns, the only stored thoracic pedicle height",
     ),
     "facet_sup_transverse": (
-        LEVELS,
-        "T1-T12: the articular pillars of the L1 template turned towards the coronal plane by 25.5 deg "
-        "(T12 by -5.3 deg), near the largest turn that folds no triangle; the whole superior processes then "
-        "measure about 58-67 deg, their articular patches (the process within 4 mm of its partner, used "
-        "here) 45-50 deg; T1's patch is the tip cap of a process without partner; "
+        tuple(lv for lv in LEVELS if lv not in ("T6", "T7", "T12")),
+        "T1-T11: the articular pillars of the L1 template swirled about their vertical axes until the superior "
+        "articular faces face posteriorly and laterally, 27.5 deg from the frontal plane (the middle of "
+        "Masharawi's 25-30); their articular patches (the process within 4 mm of its partner, used here) lag "
+        "the turned articular face and face 18-23 deg laterally at T2-T5 and T8-T11 (66-72 deg); T1's patch is the "
+        "tip cap of a process without partner; "
         "L1-L5: the Visible Human lumbar facets are more sagittal than Masharawi's ranges (the upstream "
         "patches: L2 25.0, L3 27.4, L4 25.2, L5 38.4 deg, `tests/test_morphometry.py`), the reference's remeshed "
         "and pushed-apart patches more so",
