@@ -1,3 +1,11 @@
+import os
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # the test processes share the cores: one BLAS/OpenMP thread each (more threads than cores spin and
+    # slowed the registration fixture 5x), set before numpy loads its BLAS; the pipeline runs they start inherit it
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
 import shutil
 import subprocess
 import sys
