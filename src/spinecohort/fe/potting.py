@@ -28,11 +28,10 @@ def potted_plate(
     vertebra's rigid body or fixed set in place of the carried nodes.
 
     plates: vertebra -> (its node layer in O-grid order, its cranial unit vector (3,), +1 if its bone is cranial to
-    the layer, -1 if caudal); quads: the O-grid's quads.  A fibre tie's host node cannot sit in a *RIGID BODY or a fixed set
-    (`FEModel.embedded_hosts`); the plate holds it at a fixed 1 mm from them, where the bone's first hex layer
-    (a quarter of the body's height at 4 body layers, an eighth at 8) made the attachment depend on the mesh.  The
-    plate overlaps that hex layer inside a vertebra (as the endplate's cortex does) and stiffens it where the rigid
-    body already holds the rest of the layer."""
+    the layer, -1 if caudal); quads: the O-grid's quads.  A fibre tie's host node cannot sit in a *RIGID BODY or a
+    fixed set (`FEModel.embedded_hosts`); the plate holds it 1 mm from them at any mesh, where the bone's first hex
+    layer alone would hold it by a quarter of the body's height at 4 body layers and an eighth at 8.  Inside a
+    vertebra the plate overlaps that hex layer, as the endplate's cortex does."""
     n, first = len(fe.nodes), fe.n_elements
     nodes, conns, sets, new = [fe.nodes], [], {}, {}
     for v, (plate, cranial, side) in plates.items():
