@@ -19,6 +19,7 @@ from spinecohort.fe.abaqus import FEModel, without_elements
 from spinecohort.fe.connections import body_layer
 from spinecohort.fe.export import fixed_set
 from spinecohort.fe.facets import vertebra_frame
+from spinecohort.fe.potting import potted_plate
 from spinecohort.fe.writers import format_id_list, model_to_inp_text
 from spinecohort.mesh.template import HexTemplate
 
@@ -225,8 +226,11 @@ def model_load_text(
         on_rigid = ties_on(fe.midside_ties, rigid)
         rigid = np.concatenate([rigid, fe.midside_ties[on_rigid, 0]])
         fe = dataclasses.replace(fe, midside_ties=fe.midside_ties[~on_rigid])
-    rigid = rigid[~np.isin(rigid, fe.embedded_hosts())]  # a partial CEP's rim fibres tie to deformable nodes
+    # a partial CEP's rim fibres tie to deformable nodes, held by a 1 mm cortical plate on the inferior endplate layer
     frame = vertebra_frame(template, fe.nodes, top)[0]
+    hosts = fe.embedded_hosts()
+    fe, new = potted_plate(fe, template.grid.quads, hosts, {top: (inf * n2 + np.arange(n2), frame[:, 2], 1.0)})
+    rigid = np.concatenate([rigid[~np.isin(rigid, hosts)], new[top]])
     axis, sign = LOAD_CASES[case]
     first = min(MODEL_INCREMENT_NMM / moment_nmm, MODEL_STEP_DEFAULTS["max_increment"])
     kw = {

@@ -30,7 +30,6 @@ units).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +55,7 @@ from spinecohort.fe.materials import (
     ligament_table,
     material_cards,
 )
+from spinecohort.fe.potting import potted_plate
 from spinecohort.fe.quadratic import quadratic_blocks, ties_on
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
 from spinecohort.rom.ribs import RibHeads, rib_head_nodes
@@ -310,41 +310,29 @@ def extract_rom_model(
         midside_ties=ties,
         embedded_ties=embedded,
     )
-    # a partial CEP's rim hexes touch the potted vertebrae: their fibre ties stay on deformable nodes (the
-    # bone's endplate layer hangs on the rest of the vertebra by its hexes), `FEModel.embedded_hosts`
+    # a partial CEP's rim fibres tie to the potted vertebrae's endplate layers: the tied nodes leave the rigid body
+    # and the fixed set and hang on them by a 1 mm cortical plate, whatever the body's layer count
+    # (`FEModel.embedded_hosts`, `potted_plate`)
     hosts = fe.embedded_hosts()
-    rigid[top] = rigid[top][~np.isin(rigid[top], hosts)]
-    if bottom == "S1" and np.isin(fixed, hosts).any():
-        # the S1 plate is the L5-S1 disc's bottom node layer: a cortical plate under it carries the ties' share
-        # into the fixed nodes (no change for a whole-layer CEP, whose fibres never reach the plate)
-        if len(fixed) != n2:  # a quadratic element's midside node on the plate: fixed directly, not potted
-            raise ValueError("the S1 plate carries midside nodes; it cannot be potted under a partial CEP")
-        fe, fixed = potted_plate(fe, template.grid.quads, fixed, frames["S1"][:, 2])
-        source = np.concatenate([source, np.full(len(fixed), -1)])
+    carried = hosts
+    plates = {top: (endplates[top][:n2], 1.0)}  # the top's inferior endplate layer, its bone above
+    if bottom == "S1":
+        if np.isin(fixed, hosts).any():
+            # S1's plate is the L5-S1 disc's bottom node layer, without bone above or below: the whole plate is
+            # carried (no change for a whole-layer CEP, whose fibres never reach it)
+            if len(fixed) != n2:  # a quadratic element's midside node on the plate: fixed directly, not potted
+                raise ValueError("the S1 plate carries midside nodes; it cannot be potted under a partial CEP")
+            carried = np.union1d(hosts, fixed)
+        plates[bottom] = (endplates[bottom], -1.0)
     else:
-        fixed = fixed[~np.isin(fixed, hosts)]
-    return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
-
-
-def potted_plate(
-    fe: FEModel, quads: np.ndarray, plate: np.ndarray, cranial: np.ndarray, thickness_mm: float = 1.0
-) -> tuple[FEModel, np.ndarray]:
-    """`fe` with a layer of cortical-bone hexes (block POTTING, set S1_POTTING) `thickness_mm` thick along -`cranial`
-    under the node layer `plate` (in O-grid order; `quads`: the O-grid's quads), and its new bottom nodes, which a
-    model fixes instead of the plate: a tie's force on a fixed node leaves ccx's reaction output and stalls the
-    solve, an element's does not (`FEModel.embedded_hosts`)."""
-    n = len(fe.nodes)
-    base = fe.nodes[plate] - thickness_mm * np.asarray(cranial, dtype=np.float64)
-    conn = np.concatenate([n + quads, plate[quads]], axis=1)  # bottom face, then top: the template's hex order
-    first = fe.n_elements
-    fe = dataclasses.replace(
-        fe,
-        nodes=np.concatenate([fe.nodes, base]),
-        element_blocks={**fe.element_blocks, "POTTING": ("C3D8", conn)},
-        element_sets={**fe.element_sets, "S1_POTTING": first + np.arange(len(conn))},
-        sections=[*fe.sections, Section(elset="S1_POTTING", material="CORTICAL")],
+        plates[bottom] = (endplates[bottom][n2:], -1.0)  # the bottom's superior endplate layer, its bone below
+    fe, new = potted_plate(
+        fe, template.grid.quads, carried, {v: (plate, frames[v][:, 2], side) for v, (plate, side) in plates.items()}
     )
-    return fe, n + np.arange(len(plate))
+    rigid[top] = np.concatenate([rigid[top][~np.isin(rigid[top], carried)], new[top]])
+    fixed = np.concatenate([fixed[~np.isin(fixed, carried)], new[bottom]])
+    source = np.concatenate([source, np.full(len(fe.nodes) - len(source), -1)])
+    return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
 
 
 def check_elements(model: RomModel, min_scaled_jacobian: float = 0.0) -> float:
