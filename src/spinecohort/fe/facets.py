@@ -54,7 +54,7 @@ class FacetContact:
     stiffness_n_per_mm: the closed joint; tip_clearance_mm (None = no extension stop) and
     tip_stiffness_n_per_mm: the IAP tip's gap to the lamina below and its stiffness when closed."""
 
-    clearance_mm: float = 0.5
+    clearance_mm: float = 0.79
     stiffness_n_per_mm: float = 1670.0
     transverse_deg: tuple[tuple[str, float], ...] = (("T1", 60.0), ("T10", 60.0), ("T12", 90.0), ("L5", 90.0))
     frontal_deg: tuple[tuple[str, float], ...] = (
@@ -65,7 +65,7 @@ class FacetContact:
         ("L3", 50.0),
         ("L5", 50.0),
     )
-    tip_clearance_mm: float | None = 1.05
+    tip_clearance_mm: float | None = 2.0
     tip_stiffness_n_per_mm: float = 200.0
     #: the contact element: a compression-only SPRINGA strut of this length (mm) along the contact direction,
     #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose

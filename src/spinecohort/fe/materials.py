@@ -57,7 +57,7 @@ class FEMaterials:
     cep: tuple[float, float] = (24.0, 0.4)
     shell_thickness_mm: float = 1.0  # posterior elements, sacrum, pelvis (S3, cortical material)
     nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0111)  # C10, C01 MPa, D1 1/MPa (K 180 MPa)
-    annulus_c10_mpa: float = 0.7
+    annulus_c10_mpa: float = 0.18
     annulus_d1_per_mpa: float = 0.3  # calibrated (config/config.yaml)
     # the ground substance's volumetric term (abaqus.NeoHooke): "quadratic" (J-1)^2/D1 or "logarithmic" (a barrier)
     annulus_volumetric: str = "quadratic"
@@ -67,7 +67,7 @@ class FEMaterials:
     fibre_k1_inner_mpa: float | None = None
     fibre_k1_outer_mpa: float | None = None
     fibre_k2: float = 89.6
-    fibre_angle_deg: float = 46.0  # to the transverse plane, +- (two families); calibrated (config/config.yaml)
+    fibre_angle_deg: float = 49.0  # to the transverse plane, +- (two families); calibrated (config/config.yaml)
     # "springs": tension-only springs embedded in the annulus hexes (`spinecohort.fe.fibres`), Neo-Hooke ground
     # substance; "elastic_fiber": ccx's built-in ELASTIC_FIBER law (aborts at random fibre states, docs/explanation/fe-model.md)
     fibre_model: str = "springs"
@@ -122,7 +122,7 @@ DEFAULT_LIGAMENTS = {
     "ALL": LigamentLaw(7.8, 20.0, 0.12, 63.7),
     "PLL": LigamentLaw(10.0, 20.0, 0.11, 7.0),
     "LF": LigamentLaw(15.0, 19.5, 0.062, 14.1),
-    "CL": LigamentLaw(7.5, 32.9, 0.25, 30.0),
+    "CL": LigamentLaw(3.0, 32.9, 0.25, 30.0),
     "ITL": LigamentLaw(10.0, 58.7, 0.18, 40.5),
     "ISL": LigamentLaw(10.0, 11.6, 0.14, 14.1),
     "SSL": LigamentLaw(8.0, 15.0, 0.20, 10.5),
