@@ -90,7 +90,9 @@ def _interp_periodic(angle: np.ndarray, at: np.ndarray, values: np.ndarray) -> n
 
 def layer_normal(layer: np.ndarray, towards: np.ndarray) -> np.ndarray:
     """Unit normal (3,) of a planar node layer (n, 3) mm (total least squares), on the side of ``towards`` (3,)."""
-    n = np.linalg.svd(layer - layer.mean(0), full_matrices=False)[2][-1]
+    from spinecohort.anatomy.morphometry import plane_fit
+
+    n = plane_fit(layer)[1]
     return n if n @ towards > 0 else -n
 
 
