@@ -21,7 +21,10 @@ def validation_figure(validation: pd.DataFrame, path: str | Path, title: str = "
         v = validation[validation["mode"] == mode].reset_index(drop=True)
         x = np.arange(len(v))
         colors = ["tab:green" if r is True else ("tab:red" if r is False else "tab:gray") for r in v["in_range"]]
+        ribs = (v["variant"] == "rib_heads").to_numpy() if "variant" in v else np.zeros(len(v), bool)
         ax.bar(x, v["model_deg"], color=colors, alpha=0.7, label="model (green: in range, red: out)")
+        if ribs.any():  # the same unit solved with the specimens' rib heads: its own bar, hatched
+            ax.bar(x[ribs], v["model_deg"][ribs], color="none", hatch="//", edgecolor="0.3", label="with rib heads")
         # whiskers: the calibration criterion's accepted interval (mean +- acceptance_sd SD, or the range
         # corrected for the missing rib heads; spinecohort.rom.compare)
         lo, hi = v["accept_low"].astype(float), v["accept_high"].astype(float)
@@ -37,7 +40,10 @@ def validation_figure(validation: pd.DataFrame, path: str | Path, title: str = "
         )
         ax.set_xticks(
             x,
-            [f"{s}\n{m.replace('_', ' ')}\n({sd})" for s, m, sd in zip(v["segment"], v["motion"], v["side"])],
+            [
+                f"{s}\n{m.replace('_', ' ')}\n({sd}{', rib heads' if r else ''})"
+                for s, m, sd, r in zip(v["segment"], v["motion"], v["side"], ribs)
+            ],
             fontsize=7,
         )
         ax.set_ylabel("ROM (deg)")
