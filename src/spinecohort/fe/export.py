@@ -147,6 +147,7 @@ def annulus_fibres(
         mats.fibre_k2,
         mats.fibre_angle_deg,
         hex_ids=ids,
+        per_hex=mats.fibre_springs_per_hex,
     )
 
 

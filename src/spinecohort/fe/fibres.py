@@ -46,6 +46,15 @@ BIN_RATIO = 1.02
 TABLE_STRAINS = np.concatenate([np.linspace(0.0, 0.15, 31), [0.2, 0.25, 0.3]])
 
 
+#: natural coordinates of the fibre springs' centres in a hex, by the number of springs per hex and family: its
+#: centre, or the centres of its four in-layer quarters (2 x 2 across the lamella and round the disc, one through
+#: the layer's height; the corners' third natural coordinate is the layer's stacking direction)
+QUADRATURE = {
+    1: np.zeros((1, 3)),
+    4: np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]),
+}
+
+
 def trilinear_weights(xi: np.ndarray) -> np.ndarray:
     """(..., 8) shape functions of a C3D8 hex at natural coordinates `xi` (..., 3)."""
     xi = np.asarray(xi, dtype=np.float64)
@@ -62,6 +71,14 @@ def fibre_directions(centroids_mm: np.ndarray, axis_a_mm: np.ndarray, axis_b_mm:
     et = np.cross(ez, r / np.linalg.norm(r, axis=-1, keepdims=True))
     t = np.radians(angle_deg)
     return np.stack([np.cos(t) * et + np.sin(t) * ez, np.cos(t) * et - np.sin(t) * ez], axis=1)
+
+
+def jacobian_at(corners: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """(E, 3, 3) dx/dxi of hexes with `corners` (E, 8, 3) mm at one natural point `xi` (3,)."""
+    s = HEX8_NATURAL  # (8, 3)
+    factors = 1.0 + s * np.asarray(xi, dtype=np.float64)  # (8, 3)
+    grad = np.stack([s[:, i] * np.prod(np.delete(factors, i, axis=1), axis=1) for i in range(3)], axis=1) / 8.0
+    return np.einsum("eki,kj->eij", corners, grad)
 
 
 def _natural_extent(jac: np.ndarray, directions: np.ndarray, length_mm: float) -> np.ndarray:
@@ -88,10 +105,13 @@ def embedded_segments(
     directions: np.ndarray,
     length_mm: float = FIBRE_LENGTH_MM,
     hex_ids: np.ndarray | None = None,
+    centre_xi: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """End points of one segment per hex and direction, centred on the hex's centre (xi = 0) along the
-    direction.  Its length is `length_mm` halved until both ends lie within the inner half of the hex
-    (|xi| <= `MAX_NATURAL`; a thin outer lamella or a skewed hex needs 1/2 or 1/4 of it).  A direction that
+    """End points of one segment per hex and direction, centred on the natural point `centre_xi` (default the
+    hex's centre, xi = 0) along the direction.  Its length is `length_mm` halved until both ends lie within the
+    inner half of the hex (|xi| <= `MAX_NATURAL`; a thin outer lamella or a skewed hex needs 1/2 or 1/4 of it),
+    or, off the centre, within the inner half of the hex's quarter round `centre_xi` (|xi - centre_xi| <=
+    `MAX_NATURAL` / 2, one halving more allowed).  A direction that
     crosses its hex's layer so steeply that even 1/2**MAX_HALVINGS of the length leaves the inner half (a disc wall
     sheared across a thin outer ring: fibres run in their lamella, not across it) is replaced by its closest
     direction in the layer (`in_lamella`).  Returns ``(ends_mm (E, F, 2, 3), weights (E, F, 2, 8), halvings (E, F),
@@ -100,10 +120,12 @@ def embedded_segments(
     length_mm / 2**halvings to first order in the hex's distortion.  hex_ids: (E,) the ids an error names (default
     0..E-1)."""
     corners = np.asarray(points_mm, dtype=np.float64)[np.asarray(hexes8, dtype=np.int64)]  # (E, 8, 3)
-    jac = np.einsum("eki,kj->eij", corners, HEX8_NATURAL) / 8.0  # dx/dxi at xi = 0, (E, 3, 3)
+    centre = np.zeros(3) if centre_xi is None else np.asarray(centre_xi, dtype=np.float64)
+    room, most = (MAX_NATURAL, MAX_HALVINGS) if not centre.any() else (MAX_NATURAL / 2, MAX_HALVINGS + 1)
+    jac = jacobian_at(corners, centre)  # dx/dxi at the segment's centre, (E, 3, 3)
     directions = np.asarray(directions, dtype=np.float64)  # (E, F, 3)
     dxi = _natural_extent(jac, directions, length_mm)
-    in_layer = np.abs(dxi).max(axis=-1) > MAX_NATURAL * 2.0**MAX_HALVINGS
+    in_layer = np.abs(dxi).max(axis=-1) > room * 2.0**most
     if in_layer.any():
         e = np.flatnonzero(in_layer.any(axis=1))
         projected = in_lamella(jac[e], directions[e], length_mm)
@@ -111,8 +133,8 @@ def embedded_segments(
         directions[e] = np.where(in_layer[e, :, None], projected, directions[e])
         dxi[e] = _natural_extent(jac[e], directions[e], length_mm)
     extent = np.abs(dxi).max(axis=-1)
-    halvings = np.maximum(0, np.ceil(np.log2(extent / MAX_NATURAL))).astype(np.int64)
-    if halvings.max() > MAX_HALVINGS:
+    halvings = np.maximum(0, np.ceil(np.log2(extent / room))).astype(np.int64)
+    if halvings.max() > most:
         worst = int(np.argmax(extent.max(axis=1)))
         name = worst if hex_ids is None else int(np.asarray(hex_ids)[worst])
         raise ValueError(
@@ -120,7 +142,7 @@ def embedded_segments(
             f"layer reaches natural coordinate {extent.max():.1f}"
         )
     dxi = dxi / 2.0 ** halvings[..., None]
-    xi = np.stack([-dxi, dxi], axis=2)  # (E, F, 2, 3)
+    xi = centre + np.stack([-dxi, dxi], axis=2)  # (E, F, 2, 3)
     weights = trilinear_weights(xi)
     ends = np.einsum("efsk,ekj->efsj", weights, corners)
     return ends, weights, halvings, in_layer
@@ -170,30 +192,44 @@ def embedded_fibres(
     angle_deg: float,
     length_mm: float = FIBRE_LENGTH_MM,
     hex_ids: np.ndarray | None = None,
+    per_hex: int = 1,
 ) -> EmbeddedFibres:
-    """Two fibre springs per annulus hex (`hexes8` (E, 8), node ids into `points_mm`): the hex's disc axis
-    a -> b (E, 3 each, mm) sets the families' directions, `k1_mpa` (E,) their stiffness (a radial gradient
-    per ring, or uniform); see the module docstring.  hex_ids: (E,) the hexes' ids in the model, for errors."""
+    """`per_hex` fibre springs per family in each annulus hex (`hexes8` (E, 8), node ids into `points_mm`), at the
+    `QUADRATURE` points, each carrying its share of the hex's volume (the Jacobian determinant there): the hex's
+    disc axis a -> b (E, 3 each, mm) sets the families' directions at each point, `k1_mpa` (E,) their stiffness
+    (a radial gradient per ring, or uniform); see the module docstring.  Springs are ordered point by point, two
+    families per hex.  hex_ids: (E,) the hexes' ids in the model, for errors."""
+    if per_hex not in QUADRATURE:
+        raise ValueError(f"fibre springs per hex: {per_hex}, must be one of {sorted(QUADRATURE)}")
     hexes8 = np.asarray(hexes8, dtype=np.int64)
     n_hex = len(hexes8)
     pts = np.asarray(points_mm, dtype=np.float64)
-    centroids = pts[hexes8].mean(axis=1)
-    dirs = fibre_directions(centroids, axis_a_mm, axis_b_mm, angle_deg)
-    ends, weights, halvings, _ = embedded_segments(pts, hexes8, dirs, length_mm, hex_ids)
-    rest = length_mm / 2.0**halvings  # (E, 2) nominal rest lengths
-    scale = np.broadcast_to(np.asarray(k1_mpa, dtype=np.float64), (n_hex,))[:, None] * hex_volumes(pts, hexes8)[:, None]
-    scale = scale / rest  # k1 V / L per spring (N): its table is this times 2 lambda (lambda^2 - 1) exp(k2 (...)^2)
+    corners = pts[hexes8]
+    k1 = np.broadcast_to(np.asarray(k1_mpa, dtype=np.float64), (n_hex,))
+    det = np.stack([np.linalg.det(jacobian_at(corners, xi)) for xi in QUADRATURE[per_hex]], axis=1)  # (E, Q)
+    share = hex_volumes(pts, hexes8)[:, None] * det / det.sum(axis=1, keepdims=True)  # (E, Q) mm^3
+    ends, weights, halvings, scale = [], [], [], []
+    for q, xi in enumerate(QUADRATURE[per_hex]):  # at most four points; every operation inside is over all hexes
+        at = np.einsum("k,ekj->ej", trilinear_weights(xi), corners)
+        dirs = fibre_directions(at, axis_a_mm, axis_b_mm, angle_deg)
+        e, w, h, _ = embedded_segments(pts, hexes8, dirs, length_mm, hex_ids, centre_xi=xi)
+        ends.append(e)
+        weights.append(w)
+        halvings.append(h)
+        # k1 V / L per spring (N): its table is this times 2 lambda (lambda^2 - 1) exp(k2 (...)^2)
+        scale.append(k1[:, None] * share[:, q, None] / (length_mm / 2.0**h))
+    halvings, scale = np.concatenate(halvings), np.concatenate(scale)
     bins = np.round(np.log(scale.ravel()) / np.log(BIN_RATIO)).astype(np.int64)
     key = np.column_stack([halvings.ravel(), bins])
     uniq, group = np.unique(key, axis=0, return_inverse=True)
     tables = [fibre_table(1.0, k2, float(BIN_RATIO**b), length_mm / 2.0**h) for h, b in uniq]
-    n_springs = 2 * n_hex
+    n_springs = 2 * n_hex * per_hex
     springs = np.arange(2 * n_springs).reshape(n_springs, 2)
     return EmbeddedFibres(
-        points=ends.reshape(-1, 3),
+        points=np.concatenate(ends).reshape(-1, 3),
         springs=springs,
-        hosts=np.repeat(hexes8, 4, axis=0),
-        weights=weights.reshape(-1, 8),
+        hosts=np.tile(np.repeat(hexes8, 4, axis=0), (per_hex, 1)),
+        weights=np.concatenate(weights).reshape(-1, 8),
         tables=tables,
         group=group.reshape(-1),
     )
