@@ -5,7 +5,9 @@ Run: python benchmarks/bench_facets.py [--results results] [--model model_08403]
 Prints per joint (upper vertebra of the segment, side) the contact plane's angle to the transverse and to the
 frontal plane (deg, `spinecohort.fe.facet_geometry.facet_angles_deg`: + = the superior facet faces medially) next to
 Masharawi et al. 2004's range for its level (angle to the frontal plane), the facing part's projected area (mm^2)
-and the bone-to-bone gap along the normal (median, min, max over --points contact points, mm).  Needs a template
+the bone-to-bone gap along the normal (median, min, max over --points contact points, mm) and the extension stop's
+bone gap: how far the IAP tip travels along its extension path before it meets the vertebra below (mm, bare
+bone; `spinecohort.fe.tip_gap`, 8 = meets nothing within 8 mm).  Needs a template
 built with the insertion sites (a real-bone cohort).  With --rom: the six load cases of each unit, one ccx thread
 (`spinecohort.rom.run.solve_model`), config overrides as dotted key=value (e.g. fe.facets.struts_per_joint=1).
 """
@@ -28,11 +30,13 @@ def facet_table(template, points, n_points: int) -> list[dict]:
     """One row per joint with articular surfaces: angles, facing area, gaps."""
     from spinecohort.fe.facet_geometry import facet_angles_deg
     from spinecohort.fe.facets import _joints, facet_pairs, joint_geometries
+    from spinecohort.fe.tip_gap import tip_stops
 
     pairs = facet_pairs(template)
     frames, joints = _joints(template, points, pairs)
+    _, tip_gap = tip_stops(template, points, pairs, joints, frames, 0.0)
     rows = []
-    for (up, lo, side), geo in zip(joints, joint_geometries(template, points, pairs, n_points)):
+    for (up, lo, side), geo, tip in zip(joints, joint_geometries(template, points, pairs, n_points), tip_gap):
         if geo is None:
             continue
         t, f = facet_angles_deg(geo.normal, frames[up][0], side)
@@ -49,6 +53,7 @@ def facet_table(template, points, n_points: int) -> list[dict]:
                 "gap_median_mm": round(float(np.median(geo.gaps)), 2),
                 "gap_min_mm": round(float(geo.gaps.min()), 2),
                 "gap_max_mm": round(float(geo.gaps.max()), 2),
+                "tip_gap_mm": round(float(tip), 2),
             }
         )
     return rows
