@@ -72,7 +72,7 @@ class FacetContact:
     #: None: every extension stop closes along the lower vertebra's cranial axis after ``tip_clearance_mm``; a
     #: thickness (mm): each stop acts along its IAP tip's extension path and closes after the bone gap measured
     #: there on the model's own points less this soft tissue (`spinecohort.fe.tip_gap`)
-    tip_soft_tissue_mm: float | None = None
+    tip_soft_tissue_mm: float | None = 1.0
     #: the contact element: a compression-only SPRINGA strut of this length (mm) along the contact direction,
     #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose
     #: direction stays fixed in space while the chain below turns the joint (docs/explanation/fe-model.md)
