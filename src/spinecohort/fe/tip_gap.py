@@ -5,12 +5,13 @@ In extension the upper vertebra of a segment turns backwards about an axis near 
 out along the tangent of a circle about that axis (`extension_path`): caudally and, the tip lying behind and
 above the disc's centre, posteriorly.  The stop sits on that path (`tip_stops`): a compression-only strut along
 it, closing once the tip has travelled the bone gap there (`ray_distances`: the first skin triangle of the lower
-vertebra's posterior elements that the tip's path meets) less the soft tissue between the two bones (the tip's cartilage and the capsule's inferior recess, `FacetContact.tip_soft_tissue_mm`).
+vertebra's posterior elements that the tip's path meets) less the soft tissue between the two bones (the tip's
+cartilage and the fat pad of the capsule's inferior recess, `FacetContact.tip_soft_tissue_mm`).
 
 Why per joint from the bones: one clearance for all levels either lets the lumbar segments extend more than
 they flex or stops the thoracolumbar ones too early (docs/explanation/fe-model.md).  On the real-bone mean the
-lumbar tips meet the lamina/pars below after 2-4 mm along their path, the lower thoracic ones after 6-17 mm (their
-tips overhang the lamina), which is the difference the two levels need.
+lumbar tips meet the lamina/pars below after 2.3-4.4 mm along their path, while the T7-T12 tips overhang the
+lamina and meet nothing within 8 mm, which is the difference the two levels need.
 """
 
 from __future__ import annotations
