@@ -68,7 +68,7 @@ def tip_stops(
     vertebra's anatomical frame and centre, `spinecohort.fe.facets.vertebra_frame`) the extension stop's strut
     direction (J, 3; from its node on the lower vertebra to the tip, i.e. against the tip's extension path) and
     its clearance (J,) mm: the bone gap along the path (`ray_distances` onto the lower vertebra's posterior skin,
-    its articular surface left out: that contact is the joint's own) less ``soft_tissue_mm``, within
+    the sacrum's for S1, its articular surface left out: that contact is the joint's own) less ``soft_tissue_mm``, within
     0 .. `MAX_CLEARANCE_MM`.  The path turns about the lower vertebra's lateral axis through the disc's centre
     (the centroid of the two endplate node layers that bound the disc)."""
     if soft_tissue_mm < 0:
@@ -80,9 +80,10 @@ def tip_stops(
         disc = [body_layer(template, up, 0.0) * n2 + np.arange(n2), body_layer(template, lo, 1.0) * n2 + np.arange(n2)]
         centre = points[np.concatenate(disc)].mean(0)
         path = extension_path(points[iap], centre, frame[:, 0], frame[:, 2])
-        if f"POST_{lo}" not in template.elsets:
-            raise ValueError(f"extension stop from the bones: the template has no posterior skin POST_{lo} of {lo}")
-        tris = template.tris[template.elsets[f"POST_{lo}"]]
+        skin = "SACRUM" if lo == "S1" else f"POST_{lo}"  # the sacrum is the lower side of an L5-S1 joint
+        if skin not in template.elsets:
+            raise ValueError(f"extension stop from the bones: the template has no skin {skin} for {lo}")
+        tris = template.tris[template.elsets[skin]]
         surface = template.sites.get(f"facet_surface_sup_{'right' if side > 0 else 'left'}/{lo}")
         if surface is not None:
             tris = tris[~np.isin(tris, surface).all(axis=1)]
