@@ -5,9 +5,14 @@ Run: python benchmarks/bench_facets.py [--results results] [--model model_08403]
 Prints per joint (upper vertebra of the segment, side) the contact plane's angle to the transverse and to the
 frontal plane (deg, `spinecohort.fe.facet_geometry.facet_angles_deg`: + = the superior facet faces medially) next to
 Masharawi et al. 2004's range for its level (angle to the frontal plane), the facing part's projected area (mm^2)
-and the bone-to-bone gap along the normal (median, min, max over --points contact points, mm).  Needs a template
+the bone-to-bone gap along the normal (median, min, max over --points contact points, mm) and the extension stop's
+bone gap: how far the IAP tip travels along its extension path before it meets the vertebra below (mm, bare
+bone; `spinecohort.fe.tip_gap`, 8 = meets nothing within 8 mm).  Needs a template
 built with the insertion sites (a real-bone cohort).  With --rom: the six load cases of each unit, one ccx thread
 (`spinecohort.rom.run.solve_model`), config overrides as dotted key=value (e.g. fe.facets.struts_per_joint=1).
+With --thoracic-transverse-deg D: what the thoracic joints' inclination does, the T1-T2 ... T10-T11 contact normals
+turned to D deg to the transverse plane (their frontal angle and contact points kept; a what-if on the solver's
+side, the bones stay as they are).
 """
 
 from __future__ import annotations
@@ -28,11 +33,13 @@ def facet_table(template, points, n_points: int) -> list[dict]:
     """One row per joint with articular surfaces: angles, facing area, gaps."""
     from spinecohort.fe.facet_geometry import facet_angles_deg
     from spinecohort.fe.facets import _joints, facet_pairs, joint_geometries
+    from spinecohort.fe.tip_gap import tip_stops
 
     pairs = facet_pairs(template)
     frames, joints = _joints(template, points, pairs)
+    _, tip_gap = tip_stops(template, points, pairs, joints, frames, 0.0)
     rows = []
-    for (up, lo, side), geo in zip(joints, joint_geometries(template, points, pairs, n_points)):
+    for (up, lo, side), geo, tip in zip(joints, joint_geometries(template, points, pairs, n_points), tip_gap):
         if geo is None:
             continue
         t, f = facet_angles_deg(geo.normal, frames[up][0], side)
@@ -49,9 +56,37 @@ def facet_table(template, points, n_points: int) -> list[dict]:
                 "gap_median_mm": round(float(np.median(geo.gaps)), 2),
                 "gap_min_mm": round(float(geo.gaps.min()), 2),
                 "gap_max_mm": round(float(geo.gaps.max()), 2),
+                "tip_gap_mm": round(float(tip), 2),
             }
         )
     return rows
+
+
+def tilt_thoracic_joints(transverse_deg: float) -> None:
+    """Make `spinecohort.fe.facets.joint_geometries` turn the contact normal of every joint T1-T2 ... T10-T11 to
+    ``transverse_deg`` to the transverse plane, its frontal angle kept (`FacetContact.normal`'s convention)."""
+    from dataclasses import replace
+
+    import spinecohort.fe.facets as facets
+    from spinecohort.fe.facet_geometry import facet_angles_deg
+
+    measured = facets.joint_geometries
+
+    def tilted(template, points, pairs, n_points):
+        frames, joints = facets._joints(template, points, pairs)
+        out = []
+        for geo, (up, _, side) in zip(measured(template, points, pairs, n_points), joints):
+            if geo is None or up not in [f"T{k}" for k in range(1, 11)]:
+                out.append(geo)
+                continue
+            frame = frames[up][0]
+            f = np.radians(facet_angles_deg(geo.normal, frame, side)[1])
+            t = np.radians(transverse_deg)
+            n = np.sin(t) * (np.cos(f) * -frame[:, 1] - np.sin(f) * side * frame[:, 0]) + np.cos(t) * frame[:, 2]
+            out.append(replace(geo, normal=n / np.linalg.norm(n)))
+        return out
+
+    facets.joint_geometries = tilted
 
 
 def main() -> None:
@@ -69,6 +104,7 @@ def main() -> None:
     ap.add_argument("--rom", action="store_true")
     ap.add_argument("--units", default="T2T3,T6T7,T10T11,L3L4")
     ap.add_argument("--out", default="/tmp/spinecohort_bench_facets")
+    ap.add_argument("--thoracic-transverse-deg", type=float, default=None)
     ap.add_argument("overrides", nargs="*", help="dotted config key=value (YAML value)")
     a = ap.parse_args()
     cfg = yaml.safe_load(Path(a.config).read_text())
@@ -90,6 +126,8 @@ def main() -> None:
         return
     from spinecohort.rom.run import solve_model, units_only
 
+    if a.thoracic_transverse_deg is not None:
+        tilt_thoracic_joints(a.thoracic_transverse_deg)
     rom = {**units_only(cfg["rom"], a.units.split(",")), "threads": 1}
     t0 = time.perf_counter()
     table = solve_model(template, points, rom, a.out, a.model, materials_from_config(cfg["fe"]))

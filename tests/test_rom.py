@@ -526,7 +526,10 @@ def test_facet_contact_from_the_config():
 
 
 def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
-    m = extract_rom_model(template, template.nodes, "L2", "L4", facets=FacetContact())
+    # the one-clearance stop (the primitive cohort's, tip_soft_tissue_mm null in .test/config; the stops from the
+    # bones are tests/test_tip_gap.py's)
+    one = FacetContact(tip_soft_tissue_mm=None)
+    m = extract_rom_model(template, template.nodes, "L2", "L4", facets=one)
     # L2-L3 and L3-L4, left and right: a joint gap and an extension stop each (the default has the stop)
     assert m.ligament_groups["FACET"] == 4 and m.ligament_groups["FACET_TIP"] == 4
     etype, conn = m.fe.element_blocks["FACETS"]
@@ -551,10 +554,10 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
         assert table[-1] == (0.0, 20.0) and table[-2][0] == 0.0 and table[0][0] < 0.0
         if name.startswith("FACET_TIP_"):
             lower = name[len("FACET_TIP_") :].split("_")[0][2:]  # e.g. FACET_TIP_L2L3_R -> L3
-            assert table[-2][1] == -FacetContact().tip_clearance_mm  # the stop's clearance (default 2.0 mm)
+            assert table[-2][1] == -one.tip_clearance_mm  # the stop's clearance (default 2.0 mm)
             np.testing.assert_allclose(direction, vertebra_frame(template, template.nodes, lower)[0][:, 2], atol=1e-12)
         else:
-            assert table[-2][1] == -FacetContact().clearance_mm  # the joint's clearance (default 0.79 mm)
+            assert table[-2][1] == -one.clearance_mm  # the joint's clearance (default 0.79 mm)
     # each is tied to its own vertebra: L2 (top) by the rigid body, L4 (bottom) fixed, L3 by its arch truss
     arch_l3 = m.fe.element_blocks["ARCHES"][1]
     for lower, upper in conn:

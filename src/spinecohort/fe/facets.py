@@ -12,8 +12,10 @@ Each joint (the inferior articular process (IAP) tip of the upper vertebra and t
   two tips along `FacetContact.normal` (the configured angles per level, the fallback).  A strut's node on the
   upper vertebra sits at the contact point, its node on the lower one `FacetContact.strut_length_mm` (20 mm)
   back along the normal; it pushes once the joint has closed by its clearance;
-* optionally an **extension stop** (`FacetContact.tip_clearance_mm`): the same at the IAP tip, along the lower
-  vertebra's cranial axis, i.e. closing when the tip comes down onto the lamina below.
+* optionally an **extension stop**: the same at the IAP tip, closing when the tip comes down onto the lower
+  vertebra.  With `FacetContact.tip_soft_tissue_mm` set, per joint from the model's own bones
+  (`spinecohort.fe.tip_gap`): along the tip's extension path, its clearance the bone gap there less the soft
+  tissue; else along the lower vertebra's cranial axis with one clearance `FacetContact.tip_clearance_mm`.
 
 Why a strut along the contact direction: a spring acts along the line between its nodes as they move, so
 the contact turns with the joint and a rigid turn of the whole joint neither opens nor closes it.  The two
@@ -67,6 +69,10 @@ class FacetContact:
     )
     tip_clearance_mm: float | None = 2.0
     tip_stiffness_n_per_mm: float = 200.0
+    #: None: every extension stop closes along the lower vertebra's cranial axis after ``tip_clearance_mm``; a
+    #: thickness (mm): each stop acts along its IAP tip's extension path and closes after the bone gap measured
+    #: there on the model's own points less this soft tissue (`spinecohort.fe.tip_gap`)
+    tip_soft_tissue_mm: float | None = 1.0
     #: the contact element: a compression-only SPRINGA strut of this length (mm) along the contact direction,
     #: which turns with the joint (see `strut_table`); None = a GAPUNI between coincident nodes, whose
     #: direction stays fixed in space while the chain below turns the joint (docs/explanation/fe-model.md)
@@ -109,6 +115,7 @@ class FacetContact:
             return tuple(sorted(((str(k), float(v)) for k, v in d.items()), key=lambda a: LEVELS.index(a[0])))
 
         strut = cfg.get("strut_length_mm", None)  # absent: a release made before the struts (GAPUNI)
+        soft = cfg.get("tip_soft_tissue_mm")  # absent: one clearance along the cranial axis
         return cls(
             float(cfg["clearance_mm"]),
             float(cfg["stiffness_n_per_mm"]),
@@ -116,6 +123,7 @@ class FacetContact:
             anchors(cfg["frontal_deg"]),
             None if tip is None else float(tip),
             float(cfg.get("tip_stiffness_n_per_mm", 200.0)),
+            None if soft is None else float(soft),
             None if strut is None else float(strut),
             float(cfg.get("blend_mm", cls.blend_mm)),
             int(cfg.get("struts_per_joint", cls.struts_per_joint)),
@@ -316,14 +324,23 @@ def joint_struts(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, f
 
 
 def tip_struts(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, facets: FacetContact) -> Struts:
-    """Each joint's extension stop: the IAP tip of the upper vertebra coming down onto the lamina of the lower
-    one, along the lower vertebra's cranial axis (so the stop closes when the tip moves caudally)."""
+    """Each joint's extension stop: the IAP tip of the upper vertebra coming down onto the lower one.  With
+    ``tip_soft_tissue_mm`` None along the lower vertebra's cranial axis (so the stop closes when the tip moves
+    caudally) after ``tip_clearance_mm``; else along the tip's extension path, after the bone gap there less the
+    soft tissue (`spinecohort.fe.tip_gap.tip_stops`)."""
     frames, joints = _joints(template, points, pairs)
     j = len(joints)
+    if facets.tip_soft_tissue_mm is None:
+        direction = np.array([frames[lo][0][:, 2] for _, lo, _ in joints]).reshape(-1, 3)
+        clearance = np.full(j, float(facets.tip_clearance_mm or 0.0))
+    else:
+        from spinecohort.fe.tip_gap import tip_stops
+
+        direction, clearance = tip_stops(template, points, pairs, joints, frames, facets.tip_soft_tissue_mm)
     return Struts(
         points[pairs[:, 0]] if j else np.zeros((0, 3)),
-        np.array([frames[lo][0][:, 2] for _, lo, _ in joints]).reshape(-1, 3),
-        np.full(j, float(facets.tip_clearance_mm or 0.0)),
+        direction,
+        clearance,
         np.full(j, facets.tip_stiffness_n_per_mm),
         [up for up, _, _ in joints],
         [lo for _, lo, _ in joints],
