@@ -245,3 +245,50 @@ def test_the_ground_substance_volume_terms_match_their_closed_forms_in_ccx(tmp_p
     assert _confined_stress_mpa(c10, d1, 0.99, "logarithmic") == pytest.approx(
         _confined_stress_mpa(c10, d1, 0.99, "quadratic"), rel=0.02
     )
+
+
+@pytest.mark.parametrize("per_hex", [1, 4])
+def test_springs_share_their_hex_volume_and_sit_in_its_quarters(per_hex):
+    corners = _distorted_hex(2)
+    fib = embedded_fibres(
+        corners, np.arange(8)[None], np.array([[0.0, -50, -5]]), np.array([[0.0, -50, 5]]), 1.51, 11.0, 40.0,
+        per_hex=per_hex,
+    )  # fmt: skip
+    assert len(fib.springs) == 2 * per_hex
+    assert np.allclose(np.einsum("pk,pkj->pj", fib.weights, corners[fib.hosts]), fib.points)
+    # each table holds k1 V_q / L: the springs of one family share the hex's volume (to the 2 % bins)
+    shares = []
+    for s, (a, b) in enumerate(fib.springs[::2]):
+        table = np.array(fib.tables[fib.group[2 * s]])
+        rest = -table[0, 1]
+        shares.append(np.interp(0.05 * rest, table[:, 1], table[:, 0]) / fibre_force_n(np.array([1.05]), 1.51, 11.0, 1.0)[0] * rest)
+    assert sum(shares) == pytest.approx(hex_volumes(corners, np.arange(8)[None])[0], rel=0.02)
+    with pytest.raises(ValueError, match="springs per hex"):
+        embedded_fibres(corners, np.arange(8)[None], np.zeros((1, 3)), np.ones((1, 3)), 1.0, 1.0, 40.0, per_hex=2)
+
+
+def test_four_springs_per_hex_store_the_energy_of_a_bent_hex_that_one_spring_misses():
+    """A 4 mm cube whose fibres (angle 0: both families circumferential, along x) stretch linearly across it,
+    lambda(y) = 1 + eps y / 2 for y in [-2, 2] mm (the disc's bending: tension on one side of the neutral axis).
+    The spring through the centre sits on the neutral axis and stores nothing; the exact tension energy, with
+    k2 -> 0 so Psi = k1 (lambda^2 - 1)^2 / 2, is 2 families x 16 mm^2 x int_0^2 Psi dy; the quarter springs at
+    y = +-1 store 2 x (V / 4) x 2 x Psi(1 + eps / 2), 0.73 of it at eps = 0.1 (a midpoint rule on a quadratic)."""
+    k1, k2, eps = 2.0, 1e-9, 0.1
+    corners = HEX8_NATURAL * 2.0
+    a, b = np.array([[0.0, -500.0, -10.0]]), np.array([[0.0, -500.0, 10.0]])
+
+    def psi(lam):
+        return k1 / (2 * k2) * (np.exp(k2 * (lam**2 - 1) ** 2) - 1)
+
+    y = np.linspace(0, 2, 20001)
+    exact = 2 * 16.0 * np.trapezoid(psi(1 + eps * y / 2), y)
+    moved = corners + np.c_[eps * corners[:, 1] * corners[:, 0] / 2, np.zeros((8, 2))]  # u_x = eps x y / 2
+    stored = {}
+    for per_hex in (1, 4):
+        fib = embedded_fibres(corners, np.arange(8)[None], a, b, k1, k2, 0.0, per_hex=per_hex)
+        ends = np.einsum("pk,pkj->pj", fib.weights, moved[fib.hosts])
+        rest = np.linalg.norm(np.diff(fib.points[fib.springs], axis=1)[:, 0], axis=1)
+        lam = np.linalg.norm(np.diff(ends[fib.springs], axis=1)[:, 0], axis=1) / rest
+        stored[per_hex] = float(np.sum(64.0 / per_hex * np.where(lam > 1, psi(lam), 0.0)))
+    assert stored[1] == pytest.approx(0.0, abs=1e-9 * exact)
+    assert stored[4] / exact == pytest.approx(0.73, abs=0.02)

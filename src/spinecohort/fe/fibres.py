@@ -8,7 +8,10 @@ Goel et al. 1995 used tension-only cable elements), and SPRINGA springs are what
 
 The same energy as the continuum law: per annulus hex and per family (+-angle to the transverse plane, in the
 circumferential-axial plane of the disc's cylindrical system), one spring of rest length L through the hex centroid
-along the fibre direction.  Its end nodes are new and move with the hex by trilinear interpolation (``*EQUATION``
+along the fibre direction, or four through the centres of the hex's in-layer quarters (``per_hex``), each with
+its share V_q of the volume.  One spring is a one-point rule for the fibre energy: where the disc bends, the fibre
+stretch varies across the hex, and a tension-only spring on the neutral axis stores nothing of the half of the
+hex in tension, so the coarse mesh was the more flexible (docs/explanation/validation.md, mesh convergence).  Its end nodes are new and move with the hex by trilinear interpolation (``*EQUATION``
 u_end = sum_i N_i(xi) u_i over the 8 corners, `FEModel.embedded_ties`), so the spring's stretch is the hex's
 fibre stretch lambda (exactly so under a homogeneous deformation).  With the Holzapfel-Gasser-Ogden fibre energy
 per unit volume Psi(lambda) = k1 / (2 k2) (exp(k2 (lambda^2 - 1)^2) - 1) and the hex's reference volume V, the

@@ -72,7 +72,7 @@ class FEMaterials:
     # substance; "elastic_fiber": ccx's built-in ELASTIC_FIBER law (aborts at random fibre states, docs/explanation/fe-model.md)
     fibre_model: str = "springs"
     # springs per hex and family (`spinecohort.fe.fibres.QUADRATURE`): 1 at the hex's centre, 4 at its in-layer quarters
-    fibre_springs_per_hex: int = 1
+    fibre_springs_per_hex: int = 4
     ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
     include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
     facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
@@ -199,7 +199,7 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         fibre_k2=float(fib["k2"]),
         fibre_angle_deg=float(fib["angle_deg"]),
         fibre_model=str(fib.get("model", "springs")),
-        fibre_springs_per_hex=int(fib.get("springs_per_hex", 1)),
+        fibre_springs_per_hex=int(fib.get("springs_per_hex", 4)),
         ligaments=ligs,
         include_all=bool(fe["include_all"]),
         facets=FacetContact.from_config(fe.get("facets")),  # None: a release made before facets were exported
