@@ -7,6 +7,11 @@ its insertion instead of one spring between two anchor points, so it resists a t
 area is split across the fibres (`spinecohort.fe.materials.fibre_law`), so a uniform stretch gives the single
 spring's force.  ISL, SSL and ITL are narrow or short: one spring each.
 
+The posterior ligaments and facet joints join every two adjacent levels of T1..L5 and, where the landmarks carry
+the sacrum's anchors (``anchor_<name>/S1``), L5 and the sacrum (`posterior_joints`): L5-S1's lower ends are on
+the sacrum's skin (S1's superior articular processes, laminae and median crest); the iliolumbar ligament, which
+takes the ITL's place there, is not modelled.
+
 * ALL / PLL: the hex column's outer-ring nodes across the arc of the site (``site_ALL_inf`` of the upper vertebra,
   ``site_ALL_sup`` of the lower one, the arc's ends averaged), on the upper vertebra's inferior and the lower
   one's superior endplate layer: vertical fibres, the same O-grid node at both ends.
