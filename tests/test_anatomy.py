@@ -154,3 +154,77 @@ def test_reference_bones_do_not_cross(ref):
     # nor does any triangle of the whole reference cross another (each bone closed and unfolded, no overlap)
     assert self_intersections(ref.vertices, ref.faces) == 0
     assert all(ch["self_intersections"] == 0 for ch in ref.build["checks"].values())
+
+
+def test_the_sacrum_carries_the_lumbosacral_joint_labels(ref):
+    """S1's superior articular surfaces, capsule rims, lamina edges, median crest and anchors
+    (`spinecohort.anatomy.sacrum`): on the sacrum, of sane size, on the right side, and facing the way the
+    published lumbosacral facets face.  Expected orientation: the superior facets of L5-S1 stand 49.1 +- 12.4 deg
+    to the mid-sagittal plane (599 Hamann-Todd spines, Spine 2016;41(19):E1138), more coronal than L4-L5's;
+    the reference's S1 articular surfaces (the Remus ``S1_PD*_a`` patches) face 52.5 deg (left) and 41.1 deg
+    (right), inside that range, and L5's superior ones (the L4-L5 joint) 33.5 and 29.5 deg."""
+    from spinecohort.anatomy.sacrum import s1_frame
+
+    sacrum = np.isin(ref.region, [labels.region_id("sacrum"), labels.region_id("s1_plate")])
+    plate = ref.sets["endplate_full_sup"]["S1"]
+    centre, rows = s1_frame(ref.vertices, plate)
+    loc = (ref.vertices - centre) @ rows.T  # x right, y anterior, z the plate's normal
+    sizes = {}
+    for name in (
+        "facet_surface_sup_left",
+        "facet_surface_sup_right",
+        "site_CL_sup_left",
+        "site_CL_sup_right",
+        "site_LF_sup_left",
+        "site_LF_sup_right",
+        "site_ISL_sup",
+        "site_SSL",
+    ):
+        idx = ref.sets[name]["S1"]
+        assert sacrum[idx].all(), name
+        sizes[name] = len(idx)
+    # the 3.5 mm sacrum remesh: an articular surface of ~150 mm2 holds 40-60 vertices, its rim band ~25
+    assert all(30 <= sizes[f"facet_surface_sup_{s}"] <= 80 for s in ("left", "right")), sizes
+    assert all(10 <= sizes[f"site_CL_sup_{s}"] <= sizes[f"facet_surface_sup_{s}"] for s in ("left", "right"))
+    assert all(4 <= sizes[k] <= 30 for k in ("site_LF_sup_left", "site_LF_sup_right", "site_ISL_sup", "site_SSL"))
+    # sides, and everything behind the plate's posterior edge (the posterior elements)
+    y_post = loc[plate, 1].min()
+    for s, sgn in (("left", -1.0), ("right", 1.0)):
+        for name in (f"facet_surface_sup_{s}", f"site_LF_sup_{s}"):
+            assert np.all(sgn * loc[ref.sets[name]["S1"], 0] > 0) and np.all(loc[ref.sets[name]["S1"], 1] < y_post)
+    anchors = {k[len("anchor_") :]: v["S1"] for k, v in ref.sets.items() if k.startswith("anchor_")}
+    assert set(anchors) == {
+        "sap_tip_L",
+        "sap_tip_R",
+        "lamina_upper_L",
+        "lamina_upper_R",
+        "spinous_upper",
+        "spinous_tip",
+    }
+    assert all(len(v) == 1 and sacrum[v].all() for v in anchors.values())
+    # the SAP tips rise above the plate (they reach up behind L5's inferior processes); the crest is midline
+    assert loc[anchors["sap_tip_L"], 2] > 0 and loc[anchors["sap_tip_R"], 2] > 0
+    assert (
+        abs(loc[anchors["spinous_tip"], 0]) < 4.0 and loc[anchors["spinous_tip"], 1] < loc[anchors["spinous_upper"], 1]
+    )
+    # orientation: the angle to the mid-sagittal plane of the articular surface's mean outward normal's transverse
+    # trace (the facing of the curved, shrink-wrapped surface; a plane fit to its cupped patch is unstable), S1 in
+    # its plate frame, L5's superior facets (the L4-L5 joint) in L5's body frame
+    from spinecohort.anatomy.assemble import body_frame
+    from spinecohort.anatomy.labeling import vertex_normals
+
+    normals = vertex_normals(ref.vertices, ref.faces)
+
+    def facing(idx, frame):
+        m = normals[idx].sum(0) @ frame.T
+        return m / np.linalg.norm(m), float(np.degrees(np.arctan2(abs(m[1]), abs(m[0]))))
+
+    l5 = ref.vertebra(LEVELS.index("L5"))
+    l5_frame = body_frame(ref.vertices[l5], normals[l5], ref.region[l5] == labels.region_id("body"))
+    for s, sgn in (("left", -1.0), ("right", 1.0)):
+        m, s1_deg = facing(ref.sets[f"facet_surface_sup_{s}"]["S1"], rows)
+        _, l5_deg = facing(ref.sets[f"facet_surface_sup_{s}"]["L5"], l5_frame)
+        assert s1_deg == pytest.approx({"left": 52.5, "right": 41.1}[s], abs=1.0)
+        assert 49.1 - 12.4 <= s1_deg <= 49.1 + 12.4  # inside the published mean +- SD
+        assert s1_deg > l5_deg + 5.0  # more coronal than L4-L5 (L5's: 33.5 left, 29.5 right)
+        assert m[1] < -0.3 and -sgn * m[0] > 0.3  # facing posteriorly and medially

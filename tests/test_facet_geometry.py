@@ -107,7 +107,7 @@ def test_every_real_joint_pushes_from_its_superior_onto_its_inferior_facet(real_
     t, pts = real_template, real_template.nodes
     fc = FacetContact(tip_clearance_mm=None)
     pairs = facet_pairs(t)
-    assert len(pairs) == 32  # 16 segments T1-T2 .. L4-L5, left and right
+    assert len(pairs) == 34  # 17 segments T1-T2 .. L4-L5 and L5-S1 (the sacrum's SAPs), left and right
     fn = facet_nodes(t, pts, pairs, fc)
     owner = arch_owner(t)
     _, joints = _joints(t, pts, pairs)
@@ -129,9 +129,13 @@ def test_every_real_joint_pushes_from_its_superior_onto_its_inferior_facet(real_
 def test_real_ligament_bundles_have_their_fibres_and_the_primitives_keep_one_spring(real_template, template):
     t = real_template
     assert t.meta["ligament_fibres"] == {"ALL": 3, "PLL": 3, "LF": 3, "CL": 4}
-    assert [len(t.elsets[f"LIG_{g}"]) for g in ("ALL", "PLL", "LF", "CL", "ISL")] == [51, 51, 96, 128, 16]
+    # 17 discs x 3 ALL / PLL fibres; 17 segments (L5-S1 on the sacrum's sites included) x 2 sides x 3 LF / 4 CL
+    # fibres, one ISL and SSL each; ITL on the 16 segments T1-T2 .. L4-L5 (L5-S1's iliolumbar ligament is not
+    # modelled)
+    got = [len(t.elsets[f"LIG_{g}"]) for g in ("ALL", "PLL", "LF", "CL", "ISL", "SSL", "ITL")]
+    assert got == [51, 51, 102, 136, 17, 17, 32]
     ends = t.ligaments[t.elsets["LIG_LF"]]
-    assert len(np.unique(ends.reshape(-1, 3, 2)[:, :, 0], axis=0)) == 32  # 3 distinct upper ends per LF
+    assert len(np.unique(ends.reshape(-1, 3, 2)[:, :, 0], axis=0)) == 34  # 3 distinct upper ends per LF
     # the primitive test cohort has no sites: one spring per ligament, no surfaces, the configured angles
     assert template.ligament_fibres("CL") == 1 and not template.sites
     assert (
@@ -167,9 +171,11 @@ def test_real_landmarks_carry_the_sites_through_json_and_validation_names_a_bad_
 
     ref = first_use_reference(load_reference())
     lm = ref.landmarks
-    # 4 facet surfaces x 17 levels (T1/S1 ends included) and 17 ligament sites on T1-L5
-    assert len([k for k in lm.sites if k.startswith("facet_surface_")]) == 68
+    # 4 facet surfaces x 17 levels T1-L5 and S1's two superior ones; ligament sites on T1-L5 and S1's cranial
+    # ones (its superior articular processes, laminae and median crest: the L5-S1 joint)
+    assert len([k for k in lm.sites if k.startswith("facet_surface_")]) == 70
     assert lm.site("site_LF_inf_left", "T6") is not None and lm.site("site_LF_inf_left", "S1") is None
+    assert lm.site("site_LF_sup_left", "S1") is not None and len(lm.site("anchor_sap_tip_R", "S1")) == 1
     back = Landmarks.from_dict(lm.to_dict())
     assert back.sites.keys() == lm.sites.keys()
     assert all(np.array_equal(back.sites[k], v) for k, v in lm.sites.items())
@@ -179,3 +185,56 @@ def test_real_landmarks_carry_the_sites_through_json_and_validation_names_a_bad_
         bad.validate(len(ref.vertices))
     # a cohort without sites serializes without the key (its JSON as before)
     assert "sites" not in replace(lm, sites={}).to_dict()
+
+
+def test_the_lumbosacral_joint_hangs_on_the_s1_plate_in_the_deck_and_moves_with_the_potted_s1(real_template):
+    from spinecohort.fe.connections import sacrum_nodes
+    from spinecohort.fe.export import check_deck, fe_model
+    from spinecohort.rom.submodel import extract_rom_model
+
+    t = real_template
+    n2 = len(t.grid.nodes)
+    sacrum = sacrum_nodes(t)
+    # L5-S1's joints: IAP tips on L5's arch, SAP tips on the sacrum's skin
+    l5s1 = facet_pairs(t)[np.isin(facet_pairs(t)[:, 1], sacrum)]
+    assert len(l5s1) == 2 and not np.isin(l5s1[:, 0], sacrum).any()
+    # the exported deck is one body (the connectivity check from the fixed pelvis); the L5-S1 struts' sacral nodes
+    # hang on the S1 plate (the column's bottom node layer) and so do the sacrum's ligament ends
+    fe = fe_model(t)
+    check_deck(fe, "real template")
+
+    def plate_partners(elset):  # attached node -> how many S1 plate nodes its springs reach (a truss, 0..n2-1)
+        pairs = fe.element_blocks["CONNECTORS"][1][_rows(fe, elset)]
+        on_plate = pairs[pairs[:, 1] < n2]
+        return dict(zip(*np.unique(on_plate[:, 0], return_counts=True)))
+
+    facet_nodes_s1 = plate_partners("CONN_FACET_S1")
+    # 2 joints x (4 struts + 1 stop), each strut's lower node tied to every plate node
+    assert len(facet_nodes_s1) == 10 and set(facet_nodes_s1.values()) == {n2}
+    lig_ends = np.intersect1d(t.ligaments, sacrum)
+    assert len(lig_ends) == 2 * 3 + 2 * 4 + 2  # LF 3 and CL 4 fibres a side, ISL and SSL
+    sacrum_tied = plate_partners("CONN_SACRUM")
+    assert all(sacrum_tied.get(int(v)) == n2 for v in lig_ends)
+    # the L5-S1 unit: its posterior ligaments and both joints (a strut each, 4 per joint, and a stop), every
+    # sacral node in the fixed set with the S1 plate
+    m = extract_rom_model(t, t.nodes, "L5", "S1", facets=FacetContact())
+    g = m.ligament_groups
+    assert (g["LF"], g["CL"], g["ISL"], g["SSL"], g["FACET"], g["FACET_TIP"]) == (6, 8, 1, 1, 2, 2)
+    assert "ITL" not in g
+    sacral_model_nodes = np.flatnonzero(np.isin(m.source_nodes, sacrum))
+    assert len(sacral_model_nodes) == len(np.union1d(lig_ends, l5s1[:, 1]))
+    assert np.isin(sacral_model_nodes, m.fixed_nodes).all()
+    etype, struts = m.fe.element_blocks["FACETS"]
+    lower = struts[:, 0]  # node 1 of every strut: its lower side; L5-S1's on S1, all of them fixed
+    assert np.isin(lower, m.fixed_nodes).all() and not np.isin(struts[:, 1], m.fixed_nodes).any()
+
+
+def _rows(fe, elset: str) -> np.ndarray:
+    """Rows of the CONNECTORS block of an element set (its element indices are global, the block's first)."""
+    first = sum(len(c) for name, (_, c) in fe.element_blocks.items() if name in _before(fe, "CONNECTORS"))
+    return fe.element_sets[elset] - first
+
+
+def _before(fe, block: str) -> list[str]:
+    names = list(fe.element_blocks)
+    return names[: names.index(block)]

@@ -185,3 +185,37 @@ def test_prepared_context_gives_the_same_repair():
     assert np.array_equal(Y1, Y2)
     with pytest.raises(ValueError, match="context was prepared for"):
         r.untangle(X[:-1], HEX[:-1], REF[:-1], context=ctx)
+
+
+def test_fold_pinned_by_a_feature_node_is_repaired_by_letting_features_slide():
+    # a node of the block's edge (y = 0, z = 0: two faces at 90 deg, a feature) dragged 1.3 edge lengths along
+    # the edge folds the edge hexes; fixed feature nodes cannot undo it (the rim fold under L5's flared
+    # endplate at 3 SD on the real-bone grid is of this kind), sliding them on the sample's surface can
+    X = push(nid(5, 0, 0), nid(6, 0, 0), 1.3)
+    n_invalid = int((scaled_jacobian(X, HEX) <= 0).sum())
+    with pytest.raises(r.RepairError, match="invalid elements remain"):
+        r.untangle(X, HEX, REF, free_features=False)
+    Y, rep = r.untangle(X, HEX, REF)
+    check_repaired(X, Y, rep, n_invalid=n_invalid)
+    assert n_invalid == 1 and rep.sliding  # the edge hex between the node and its +x neighbour
+    assert any("features sliding" in a for a in rep.attempts)
+    # the slid nodes stay on the sample's own surface
+    moved_surface = np.intersect1d(rep.moved_nodes, BOUNDARY)
+    surface = r._surface_near(X, r.boundary_faces(HEX), np.ones(len(X), bool))
+    _, closest = surface.find_closest_cell(Y[moved_surface], return_closest_point=True)
+    assert np.linalg.norm(closest - Y[moved_surface], axis=1).max() < 1e-9
+
+
+def test_second_pass_failure_names_the_input_count_first():
+    # an interior fold (4 hexes, repaired by the first pass) and a surface fold (2 hexes, which this plan cannot
+    # repair): the first pass leaves 3 (the fold and a neighbour its fixed-surface attempt pushed to sJ -0.001),
+    # the second fails on those 3; the caller keeps the input with all 6, so the message leads with 6, not with
+    # the second pass's "input had 3"
+    X = push(nid(5, 5, 5), nid(6, 5, 5), 1.6)
+    X[nid(5, 5, 0)] += 1.3 * (REF[nid(6, 5, 0)] - REF[nid(5, 5, 0)])
+    assert int((scaled_jacobian(X, HEX) <= 0).sum()) == 6
+    with pytest.raises(r.RepairError) as err:
+        r.untangle(X, HEX, REF, plan=((1, False),))
+    msg = str(err.value)
+    assert msg.startswith("untangling failed: the 6 invalid elements of the input were cut to 3 by the first pass")
+    assert "second pass: untangling failed: 3 invalid elements remain (input had 3;" in msg

@@ -18,6 +18,7 @@ from spinecohort.anatomy import labeling
 from spinecohort.anatomy.labels import cohort_part, cohort_part_names, region_id
 from spinecohort.anatomy.landmark_rules import vertebra_landmarks
 from spinecohort.anatomy.reference import Reference
+from spinecohort.anatomy.sacrum import sacral_labels
 from spinecohort.anatomy.surface import to_polydata
 from spinecohort.cohort.landmarks import LEVELS, Landmarks
 
@@ -236,6 +237,10 @@ def assemble(parts: dict, template: tuple, bodies: dict, facets: dict, heads: di
     lm_sets["endplate_sup"]["S1"] = so + band
     lm_sets["rim_sup"]["S1"] = so + edge
     full_endplates["sup"]["S1"] = so + plate
+    # the lumbosacral joint's posterior elements: S1's articular surfaces, lamina edges, median crest, anchors
+    sacral = sacral_labels(sp_, sf_, plate, {s: facets[f"S1_{s}"][0] for s in ("left", "right")})
+    for name, idx in sacral["sites"].items():
+        sites.setdefault(f"site_{name}", {})["S1"] = so + idx
 
     # hip bones: pubis = anterior and caudal of the acetabular centres, the rest ilium (with ischium)
     po = offsets["pelvis"]
@@ -258,11 +263,16 @@ def assemble(parts: dict, template: tuple, bodies: dict, facets: dict, heads: di
     sets = {"endplate_full_sup": full_endplates["sup"], "endplate_full_inf": full_endplates["inf"]}
     sets.update(sites)
     surf = facet_surfaces(vert, facets, offsets, points)
+    for key, idx in sacral["surfaces"].items():
+        surf[key]["S1"] = so + idx
     for key, per_level in surf.items():
         sets[f"facet_surface_{key}"] = per_level
         sets[f"site_CL_{key}"] = {
             lv: labeling.boundary_band(idx, faces, points, 1.5)[0] for lv, idx in per_level.items() if len(idx)
         }
+    # the sacrum's anchors, one vertex each: sets ``anchor_<name>`` -> {"S1": [vertex]} (``Landmarks.anchors``
+    # hold one vertex per level T1..L5)
+    sets.update({f"anchor_{name}": {"S1": np.array([so + v])} for name, v in sacral["anchors"].items()})
     part = cohort_part(region, level, side)
     lm = Landmarks(
         part=part,

@@ -16,6 +16,9 @@ length, facet orientation) is measured on these regions.
 The endplate sets (patch and rim of every superior and inferior endplate, ``S1`` included) and the
 femoral-head sphere patches are stored as the :class:`spinecohort.cohort.landmarks.Landmarks` of the
 reference; ligament insertion sites as vertex sets named ``site_<LIGAMENT>_<where>`` (:data:`LIGAMENT_SITES`).
+The sacrum carries the lower side of the L5-S1 joint (:mod:`spinecohort.anatomy.sacrum`): the sets
+``facet_surface_sup_<side>``, ``site_CL_sup_<side>``, ``site_LF_sup_<side>``, ``site_ISL_sup`` and ``site_SSL``
+have a key ``"S1"``, and its anchors are the one-vertex sets ``anchor_<name>`` (key ``"S1"``).
 """
 
 from __future__ import annotations

@@ -53,7 +53,8 @@ class Landmarks:
         nucleus (`endplate_surface`).  Optional: empty, ``endplate_sup/inf`` are the whole planar patches.
     sites: ``"<set>/<level>"`` -> indices of an anatomical surface patch of that level: the facet articular
         surfaces ``facet_surface_<sup|inf>_<left|right>`` and the ligament insertion sites ``site_<LIG>_<where>``
-        (`spinecohort.anatomy.labels.LIGAMENT_SITES`) of the labeled reference.  Optional (a cohort without them
+        (`spinecohort.anatomy.labels.LIGAMENT_SITES`) of the labeled reference, and the sacrum's one-vertex
+        anchors ``anchor_<name>/S1`` (the lower side of L5-S1, which ``anchors`` does not hold).  Optional (a cohort without them
         gets single-spring ligaments at ``anchors`` and facet struts at configured angles); the hex template reads
         them (`spinecohort.mesh.ligament_sites`).
     """

@@ -414,7 +414,7 @@ def reference_sites(ref: Reference) -> dict[str, np.ndarray]:
     return {
         f"{name}/{lv}": np.asarray(v, dtype=np.int64)
         for name, per in ref.sets.items()
-        if name.startswith(("facet_surface_", "site_"))
+        if name.startswith(("facet_surface_", "site_", "anchor_"))
         for lv, v in per.items()
         if len(v)
     }

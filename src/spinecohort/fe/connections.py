@@ -77,9 +77,27 @@ def arch_nodes(template: HexTemplate, level: str) -> np.ndarray:
     return np.unique(template.tris[template.elsets[key]])
 
 
+def sacrum_nodes(template: HexTemplate) -> np.ndarray:
+    """Template node ids of the sacrum's skin (empty if the template has none)."""
+    if "SACRUM" not in template.elsets:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(template.tris[template.elsets["SACRUM"]])
+
+
 def arch_owner(template: HexTemplate) -> dict[int, str]:
-    """Template node id of every posterior-arch node -> its vertebra."""
-    return {int(n): v for v in LEVELS for n in arch_nodes(template, v)}
+    """Template node id of every posterior-arch node -> its vertebra, and of every sacrum node -> ``"S1"`` (the
+    lower side of the L5-S1 facet joints)."""
+    out = {int(n): "S1" for n in sacrum_nodes(template)}
+    out.update({int(n): v for v in LEVELS for n in arch_nodes(template, v)})
+    return out
+
+
+def base_nodes(template: HexTemplate, level: str) -> np.ndarray:
+    """Template node ids a bony part of `level` hangs on: a vertebra's posterior wall (`posterior_wall`), and for
+    ``"S1"`` the S1 plate (the column's bottom node layer), which carries the sacrum (``CONN_SACRUM``)."""
+    if level == "S1":
+        return np.arange(len(template.grid.nodes))
+    return posterior_wall(template, level)
 
 
 def truss_pairs(attach: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -133,7 +151,8 @@ def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.
 
     * ``CONN_ARCH_<lvl>``: the posterior skin of each vertebra to its body's posterior wall; attachment
       nodes = every ligament end on the arch (the ROM's arch anchors) plus three spread nodes per piece;
-    * ``CONN_SACRUM``: the sacrum to the S1 plate (the column's bottom node layer);
+    * ``CONN_SACRUM``: the sacrum to the S1 plate (the column's bottom node layer); attachment nodes = three
+      spread nodes per piece plus every ligament end on the sacrum (L5-S1's posterior ligaments);
     * ``CONN_PELVIS``: each piece of the pelvis to its nearest sacrum nodes (sacroiliac joints);
     * ``CONN_FH_L`` / ``CONN_FH_R``: each femoral head to its nearest pelvis nodes (hip joints).
 
@@ -155,6 +174,10 @@ def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.
     if "SACRUM" in template.elsets:
         centre = points[s1_plate].mean(0)
         pairs = [truss_pairs(spread_nodes(points, p, centre), s1_plate) for p in skin_pieces(template, "SACRUM")]
+        # the sacrum's ligament ends (L5-S1's posterior ligaments), each tied to the plate like an arch's anchors
+        anchors = np.intersect1d(sacrum_nodes(template), lig_ends)
+        if len(anchors):
+            pairs.append(truss_pairs(anchors, s1_plate))
         out["CONN_SACRUM"] = drop_short(points, np.concatenate(pairs))
     for part, base in (("PELVIS", "SACRUM"), ("FH_L", "PELVIS"), ("FH_R", "PELVIS")):
         if part not in template.elsets or base not in template.elsets:

@@ -204,7 +204,7 @@ def fe_model(
     (a deck of loose parts, for pictures only).
     materials: default `DEFAULT_MATERIALS` (= config/config.yaml); include_all overrides its switch.
     """
-    from spinecohort.fe.connections import CONNECTOR_TABLE, model_connectors, posterior_wall, truss_pairs
+    from spinecohort.fe.connections import CONNECTOR_TABLE, base_nodes, model_connectors, truss_pairs
     from spinecohort.fe.facets import facet_nodes, facet_pairs
     from spinecohort.fe.quadratic import quadratic_blocks
 
@@ -243,11 +243,11 @@ def fe_model(
     fn = None
     if connectors and mats.facets is not None and "LIG_CL" in template.elsets:
         # facet joints: new nodes after the template's (ids N+1..), each hung on its vertebra's posterior wall
-        # by the arch truss (coordinate-free: the same springs in every model of the cohort)
+        # (S1's: on the S1 plate) by the arch truss (coordinate-free: the same springs in every model of the cohort)
         fn = facet_nodes(template, pts, facet_pairs(template), mats.facets)
         n = len(pts)
         for v, ix in fn.tied.items():
-            conn_sets[f"CONN_FACET_{v}"] = truss_pairs(n + ix, posterior_wall(template, v))
+            conn_sets[f"CONN_FACET_{v}"] = truss_pairs(n + ix, base_nodes(template, v))
     if conn_sets:
         first = offset["lig"] + int(lig_keep.sum())
         blocks["CONNECTORS"] = ("SPRINGA", np.concatenate(list(conn_sets.values())))

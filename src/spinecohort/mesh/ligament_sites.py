@@ -7,6 +7,11 @@ its insertion instead of one spring between two anchor points, so it resists a t
 area is split across the fibres (`spinecohort.fe.materials.fibre_law`), so a uniform stretch gives the single
 spring's force.  ISL, SSL and ITL are narrow or short: one spring each.
 
+The posterior ligaments and facet joints join every two adjacent levels of T1..L5 and, where the landmarks carry
+the sacrum's anchors (``anchor_<name>/S1``), L5 and the sacrum (`posterior_joints`): L5-S1's lower ends are on
+the sacrum's skin (S1's superior articular processes, laminae and median crest); the iliolumbar ligament, which
+takes the ITL's place there, is not modelled.
+
 * ALL / PLL: the hex column's outer-ring nodes across the arc of the site (``site_ALL_inf`` of the upper vertebra,
   ``site_ALL_sup`` of the lower one, the arc's ends averaged), on the upper vertebra's inferior and the lower
   one's superior endplate layer: vertical fibres, the same O-grid node at both ends.
@@ -35,6 +40,11 @@ FACET_SURFACES = (
     "facet_surface_inf_left",
     "facet_surface_inf_right",
 )
+
+
+#: the sacrum's anchors (``Landmarks.sites`` ``anchor_<name>/S1``, one vertex each) that L5-S1's posterior
+#: ligaments and facet joints need (`spinecohort.anatomy.sacrum`)
+SACRAL_ANCHORS = ("spinous_tip", "spinous_upper", "lamina_upper_L", "lamina_upper_R", "sap_tip_L", "sap_tip_R")
 
 
 def has_sites(sites: dict) -> bool:
@@ -154,6 +164,20 @@ def _endplate_layer(layers: list[dict], level: str, t: float) -> int:
     return next(i for i, ly in enumerate(layers) if ly["kind"] == "body" and ly["level"] == level and ly["t"] == t)
 
 
+def posterior_joints(landmarks) -> list[tuple[str, str]]:
+    """The (upper, lower) vertebra pairs that get posterior ligaments and facet joints: every two adjacent levels
+    of T1..L5 when the landmarks have anchors, and L5-S1 when they also have the sacrum's anchors
+    (``anchor_<name>/S1`` sites: S1's superior articular process and laminae, the median crest)."""
+    from spinecohort.cohort.landmarks import LEVELS
+
+    if not landmarks.anchors:
+        return []
+    pairs = list(zip(LEVELS[:-1], LEVELS[1:]))
+    if all(landmarks.site(f"anchor_{n}", "S1") is not None for n in SACRAL_ANCHORS):
+        pairs.append((LEVELS[-1], "S1"))
+    return pairs
+
+
 def template_ligaments(
     landmarks, remap: np.ndarray, pts: np.ndarray, grid, layers: list[dict], eps: dict, fibres: dict
 ):
@@ -177,13 +201,16 @@ def template_ligaments(
         lig.extend(zip(np.atleast_1d(u).tolist(), np.atleast_1d(v).tolist()))
         groups.extend([group] * np.size(u))
 
+    def anchor(name: str, level: str) -> int:
+        # T1..L5: the landmark anchors (one vertex per level); S1: the sacrum's ``anchor_<name>`` site
+        if level == "S1":
+            return int(landmarks.site(f"anchor_{name}", "S1")[0])
+        return int(a[name][LEVELS.index(level)])
+
     joints = []
-    for up, lo in zip(LEVELS[:-1], LEVELS[1:]):
-        if not a:
-            break
-        i, j = LEVELS.index(up), LEVELS.index(lo)
-        add("SSL", remap[a["spinous_tip"][i]], remap[a["spinous_tip"][j]])
-        add("ISL", remap[a["spinous_lower"][i]], remap[a["spinous_upper"][j]])
+    for up, lo in posterior_joints(landmarks):
+        add("SSL", remap[anchor("spinous_tip", up)], remap[anchor("spinous_tip", lo)])
+        add("ISL", remap[anchor("spinous_lower", up)], remap[anchor("spinous_upper", lo)])
         for s, side in (("L", "left"), ("R", "right")):
             for g, anchor_up, anchor_lo, where_up, where_lo in (
                 ("LF", "lamina_lower", "lamina_upper", f"inf_{side}", f"sup_{side}"),
@@ -197,9 +224,10 @@ def template_ligaments(
                 elif k_of[g] > 1:  # a group's fibres share its area equally: every ligament needs its sites
                     raise ValueError(f"landmark sites lack site_{g}_{where_up}/{up} or site_{g}_{where_lo}/{lo}")
                 else:
-                    add(g, remap[a[f"{anchor_up}_{s}"][i]], remap[a[f"{anchor_lo}_{s}"][j]])
-            joints.append((remap[a[f"iap_tip_{s}"][i]], remap[a[f"sap_tip_{s}"][j]]))
-            add("ITL", remap[a[f"tp_tip_{s}"][i]], remap[a[f"tp_tip_{s}"][j]])
+                    add(g, remap[anchor(f"{anchor_up}_{s}", up)], remap[anchor(f"{anchor_lo}_{s}", lo)])
+            joints.append((remap[anchor(f"iap_tip_{s}", up)], remap[anchor(f"sap_tip_{s}", lo)]))
+            if lo != "S1":  # L5-S1: the iliolumbar ligament takes the ITL's place (not modelled)
+                add("ITL", remap[anchor(f"tp_tip_{s}", up)], remap[anchor(f"tp_tip_{s}", lo)])
     # PLL / ALL: the outer ring, from each vertebra's inferior endplate to the superior endplate (or S1 plate) below
     outer_xy = grid.nodes[grid.outer]
     outer_deg = np.degrees(np.arctan2(outer_xy[:, 1], outer_xy[:, 0]))

@@ -14,8 +14,9 @@ A sample X = mean + sum w_i mode_i can fold elements. We repair only a patch aro
    plus mu |x - x0|^2 / h^2 per movable node (h: mean reference edge length). Analytic gradient, scipy L-BFGS-B;
    outer loop eps = sqrt(1e-8 + 0.04 min(det T, 0)^2) until the patch is above target;
 4. escalation r = 1 -> 2 -> 2 sliding -> 3 sliding, each from the input, stopping at the first step that leaves no
-   element below target (straight to sliding if a fold involves only surface nodes). The best step is returned if
-   every element of the mesh is then certified valid (Bernstein); otherwise RepairError.
+   element below target (straight to sliding if a fold involves only surface nodes); if every step leaves an
+   invalid element, the widest step once more with the feature nodes sliding too (a fold pinned at a rim). The
+   best step is returned if every element of the mesh is then certified valid (Bernstein); otherwise RepairError.
 
 Written here because no Python library untangles hex meshes with a fixed/sliding boundary (Mesquite and the
 gmsh WinslowUntangler are C++). Lengths in mm.
@@ -370,6 +371,7 @@ def untangle(
     maxiter: int = 300,
     context: UntangleContext | None = None,
     passes: int = 2,
+    free_features: bool = True,
 ) -> tuple[np.ndarray, RepairReport]:
     """Repair inverted / badly shaped hexes of one sample by local untangling.
 
@@ -381,6 +383,9 @@ def untangle(
     second call is a no-op). Raises RepairError naming the elements left invalid if every step fails.
     passes: when the best step still leaves invalid elements, the plan runs again from that step's result, up
     to this many times in all (a fold at a thin disc next to a concave real endplate can need two).
+    free_features: when every step of the plan leaves invalid elements, one more attempt at its widest sliding
+    step lets the surface feature nodes slide as well (a rim fold pinned by them: the L5-S1 cartilage layer under
+    L5's flared rim at 3 SD).
     """
     points, hexes = check_mesh(points, hexes)
     ref, _ = check_mesh(reference_points, hexes)
@@ -452,6 +457,22 @@ def untangle(
             best = (new, invalid, below, sj, rings, sliding)
         if not below.any():
             break
+    if free_features and best is not None and best[1].any() and any(s[1] for s in steps):
+        # a fold pinned by a surface feature node (a rim where the wall meets an endplate or disc): the widest
+        # step once more, the feature nodes sliding on the sample's surface like the others
+        rings = max(s[0] for s in steps if s[1])
+        new, elems = _attempt(
+            points, ref, hexes, faces, bad, rings, True, frames, np.zeros_like(feature), is_boundary, inc,
+            target, mu, lam, max_outer, maxiter,
+        )  # fmt: skip
+        if new is not None:
+            sj, invalid, below = _recheck(new, hexes, target, elems, (sj0, invalid0, bad0))
+            report.attempts.append(
+                f"rings={rings} sliding=True features sliding: {invalid.sum()} invalid, "
+                f"{below.sum()} below target, min sJ {sj.min():.3f}"
+            )
+            if (invalid.sum(), below.sum()) < (best[1].sum(), best[2].sum()):
+                best = (new, invalid, below, sj, rings, True)
     if best is None:
         raise RepairError(
             f"untangling failed: no movable node near the {invalid0.sum()} invalid elements "
@@ -462,10 +483,16 @@ def untangle(
     if invalid.any() and passes > 1 and invalid.sum() < invalid0.sum():
         try:
             new, later = untangle(
-                new, hexes, ref, tau, mu, lam, plan, feature_angle_deg, max_outer, maxiter, ctx, passes - 1
-            )
+                new, hexes, ref, tau, mu, lam, plan, feature_angle_deg, max_outer, maxiter, ctx, passes - 1,
+                free_features,
+            )  # fmt: skip
         except RepairError as err:
-            raise RepairError(f"{err}; first pass: {report.attempts}") from None
+            # the second pass's counts are of the first pass's output, which is discarded with it: the message
+            # leads with the mesh as given, the one a caller keeps
+            raise RepairError(
+                f"untangling failed: the {invalid0.sum()} invalid elements of the input were cut to {invalid.sum()} "
+                f"by the first pass, then second pass: {err}; first pass: {report.attempts}"
+            ) from None
         invalid = np.zeros(0, bool)
         min_sj_after, rings, sliding = later.min_scaled_jacobian_after, later.patch_rings, later.sliding
         report.attempts.extend(f"pass 2: {a}" for a in later.attempts)

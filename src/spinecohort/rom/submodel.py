@@ -23,9 +23,12 @@ Facet joints (`spinecohort.fe.facets`, the same contacts as the exported decks):
 and, if configured, an extension stop of the inferior articular process tip on the lamina below; stand-ins for
 surface contact, which the S3 skins cannot provide here.
 
+A model down to S1 keeps L5-S1's posterior ligaments and facet joints where the template has them (the sacrum's
+anchors, `spinecohort.anatomy.sacrum`): their nodes on the sacrum are fixed with the S1 plate (the sacrum is
+potted with the pelvis in vitro).
+
 Limitations (docs/explanation/fe-model.md "Limitations"): facet contact is point gaps, not surface contact; no
-posterior ligaments or facets between L5 and the sacrum (the template has no sacral anchors); no rib cage (thoracic
-units).
+iliolumbar ligament; no rib cage (thoracic units).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from spinecohort.fe.connections import (
     drop_short,
     linear_spring_table,
     posterior_wall,
+    sacrum_nodes,
     truss_pairs,
 )
 from spinecohort.fe.export import add_fibres, annulus_fibres, disc_orientations, hex_blocks, hex_section
@@ -151,6 +155,12 @@ def extract_rom_model(
     allowed[hex_nodes] = True
     for v in bones:
         allowed[arch[v]] = True
+    # a model down to S1: the sacrum's ends of L5-S1's ligaments and facet joints, fixed with the S1 plate
+    sacral = np.zeros(0, dtype=np.int64)
+    if bottom == "S1":
+        ends = [template.ligaments.ravel(), template.sites.get("facet_joints", np.zeros((0, 2), np.int64)).ravel()]
+        sacral = np.intersect1d(sacrum_nodes(template), np.concatenate(ends))
+        allowed[sacral] = True
     keep_lig = allowed[template.ligaments].all(axis=1)
     if not include_all:
         keep_lig &= lig_group != "ALL"
@@ -165,6 +175,7 @@ def extract_rom_model(
     rn = rib_head_nodes(template, points, segments, ribs) if ribs is not None else None
     # arch anchors actually used, per vertebra (ligament ends, and the transverse-process tips of the ribs)
     anchors = {v: np.intersect1d(arch[v], ligs.ravel()) for v in bones}
+    anchors["S1"] = np.intersect1d(sacral, np.concatenate([ligs.ravel(), joints.ravel()]))
     if rn is not None:
         for v, tips in rn.tp_tips.items():
             anchors[v] = np.union1d(anchors[v], tips)
@@ -331,6 +342,8 @@ def extract_rom_model(
     )
     rigid[top] = np.concatenate([rigid[top][~np.isin(rigid[top], carried)], new[top]])
     fixed = np.concatenate([fixed[~np.isin(fixed, carried)], new[bottom]])
+    if bottom == "S1":  # the sacrum's ligament and facet nodes move with the fixed S1 (potted with the pelvis)
+        fixed = np.concatenate([fixed, new_of[anchors["S1"]], extra_tied.get("S1", np.zeros(0, np.int64))])
     source = np.concatenate([source, np.full(len(fe.nodes) - len(source), -1)])
     return RomModel(fe, verts, endplates, rigid, fixed, frames, np.arange(n_hexes), source, lig_counts)
 

@@ -165,7 +165,11 @@ def _check_models(hex_points, qi: _QualityInputs, w, model_ids, repair, log) -> 
             rep["repair_error"][k] = f"{model_name(int(model_ids[k]))}: {exc}"
             if log is not None:
                 log.warning(
-                    "%s (weights %s SD) cannot be repaired: %s", model_name(int(model_ids[k])), w[k].tolist(), exc
+                    "%s (weights %s SD) cannot be repaired, stored as sampled with %d inverted hexes: %s",
+                    model_name(int(model_ids[k])),
+                    w[k].tolist(),
+                    metrics["invalid"][k],
+                    exc,
                 )
             continue
         hex_points[k, :n] = fixed
