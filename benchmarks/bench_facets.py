@@ -3,7 +3,7 @@
 Run: python benchmarks/bench_facets.py [--results results] [--model model_08403] [--config config/config.yaml]
          [--points 16] [--rom --units T2T3,T6T7,T10T11,L3L4 --out /tmp/spinecohort_bench_facets] [key=value ...]
 Prints per joint (upper vertebra of the segment, side) the contact plane's angle to the transverse and to the
-frontal plane (deg, `spinecohort.fe.facet_geometry.facet_angles_deg`: + = the superior facet faces medially) next to
+frontal plane (deg, `spinecohort.anatomy.morphometry.facet_angles_deg`: + = the superior facet faces medially) next to
 Masharawi et al. 2004's range for its level (angle to the frontal plane), the facing part's projected area (mm^2)
 the bone-to-bone gap along the normal (median, min, max over --points contact points, mm) and the extension stop's
 bone gap: how far the IAP tip travels along its extension path before it meets the vertebra below (mm, bare
@@ -31,7 +31,7 @@ MASHARAWI_FRONTAL_DEG.update({"L3": (34, 50), "L4": (34, 50), "L5": (34, 50)})
 
 def facet_table(template, points, n_points: int) -> list[dict]:
     """One row per joint with articular surfaces: angles, facing area, gaps."""
-    from spinecohort.fe.facet_geometry import facet_angles_deg
+    from spinecohort.anatomy.morphometry import facet_angles_deg
     from spinecohort.fe.facets import _joints, facet_pairs, joint_geometries
     from spinecohort.fe.tip_gap import tip_stops
 
@@ -68,7 +68,7 @@ def tilt_thoracic_joints(transverse_deg: float) -> None:
     from dataclasses import replace
 
     import spinecohort.fe.facets as facets
-    from spinecohort.fe.facet_geometry import facet_angles_deg
+    from spinecohort.anatomy.morphometry import facet_angles_deg
 
     measured = facets.joint_geometries
 

@@ -152,7 +152,7 @@ ARCH_ANCHORS = ((11.0, 19.4 / 23.7), (12.0, 22.2 / 23.7))
 #: change with it.
 TAPER_ANCHORS = ((1.0, 0.0), (3.0, 0.25), (10.0, 0.25), (12.0, 0.0))
 #: Frontal angle (deg) of each level's superior articular face, in the convention of
-#: :func:`spinecohort.fe.facet_geometry.facet_angles_deg` (the face's outward normal from posterior, positive
+#: :func:`spinecohort.anatomy.morphometry.facet_angles_deg` (the face's outward normal from posterior, positive
 #: medially, negative laterally): T1-T11 face posteriorly and laterally, 25-30 deg from the frontal plane
 #: (Masharawi 2004: 60-65 deg to the mid-sagittal plane; Gray's Anatomy: thoracic superior facets face
 #: backwards, a little laterally and upwards), T12 faces medially, 26-34 deg to the mid-sagittal plane (the

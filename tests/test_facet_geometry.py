@@ -10,7 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from spinecohort.fe.facet_geometry import facet_angles_deg, joint_geometry, kmeans_points, plane_normal
+from spinecohort.anatomy.morphometry import facet_angles_deg
+from spinecohort.fe.facet_geometry import joint_geometry, kmeans_points, plane_normal
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, joint_surfaces
 from spinecohort.fe.materials import DEFAULT_LIGAMENTS, fibre_law, ligament_force_n, ligament_table
 from spinecohort.mesh.ligament_sites import across_width, around_ring, distinct_nearest

@@ -258,10 +258,14 @@ def test_springs_share_their_hex_volume_and_sit_in_its_quarters(per_hex):
     assert np.allclose(np.einsum("pk,pkj->pj", fib.weights, corners[fib.hosts]), fib.points)
     # each table holds k1 V_q / L: the springs of one family share the hex's volume (to the 2 % bins)
     shares = []
-    for s, (a, b) in enumerate(fib.springs[::2]):
-        table = np.array(fib.tables[fib.group[2 * s]])
+    for s in range(0, len(fib.springs), 2):  # family 0 of each point (springs: point by point, two families)
+        table = np.array(fib.tables[fib.group[s]])
         rest = -table[0, 1]
-        shares.append(np.interp(0.05 * rest, table[:, 1], table[:, 0]) / fibre_force_n(np.array([1.05]), 1.51, 11.0, 1.0)[0] * rest)
+        shares.append(
+            np.interp(0.05 * rest, table[:, 1], table[:, 0])
+            / fibre_force_n(np.array([1.05]), 1.51, 11.0, 1.0)[0]
+            * rest
+        )
     assert sum(shares) == pytest.approx(hex_volumes(corners, np.arange(8)[None])[0], rel=0.02)
     with pytest.raises(ValueError, match="springs per hex"):
         embedded_fibres(corners, np.arange(8)[None], np.zeros((1, 3)), np.ones((1, 3)), 1.0, 1.0, 40.0, per_hex=2)

@@ -362,16 +362,32 @@ def facet_angles(local_mm: np.ndarray) -> tuple[float, float]:
     return float(np.degrees(np.arctan2(a, r))), float(np.degrees(np.arctan2(a, s)))
 
 
+def facet_angles_deg(normal: np.ndarray, frame: np.ndarray, side: float) -> tuple[float, float]:
+    """(transverse, frontal) angle (deg) of a joint plane with unit `normal` (SAP -> IAP) on `side` (+1 right,
+    -1 left) of a vertebra with `frame` (columns lateral right, anterior, cranial), in the convention of
+    `spinecohort.fe.facets.FacetContact.normal` and of the facet rows of the morphometry table: transverse = the plane's angle to the transverse plane
+    (the normal's to the cranial axis), frontal = the plane's angle to the frontal plane, positive when the SAP
+    faces medially, negative when laterally (atan2 of the medial and posterior components)."""
+    medial = -side * frame[:, 0]
+    t = float(np.degrees(np.arccos(np.clip(normal @ frame[:, 2], -1.0, 1.0))))
+    f = float(np.degrees(np.arctan2(normal @ medial, normal @ -frame[:, 1])))
+    return t, f
+
+
+#: the vertebra frame's axes (columns: lateral right, anterior, cranial) in its local coordinates (anterior, right,
+#: superior; `VertebraFrame.local`)
+LOCAL_AXES = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
 def facet_facing(local_mm: np.ndarray, outward: np.ndarray, side: float) -> float:
-    """Frontal angle (deg) of the plane fitted to facet points ``local_mm`` (N, 3) in the vertebra frame
-    (anterior, right, superior), its normal turned to the side of ``outward`` (3,) (the articular surface's
-    outward direction): the angle of the normal's transverse trace from posterior, positive when the facet
-    faces medially, negative laterally (``side`` +1 right, -1 left); the signed counterpart of the transverse
-    angle (90 minus its magnitude, for a facet facing backwards) and the convention of
-    `spinecohort.fe.facet_geometry.facet_angles_deg`."""
+    """Frontal angle (deg, `facet_angles_deg`) of the plane fitted to facet points ``local_mm`` (N, 3) in the
+    vertebra frame (anterior, right, superior), its normal turned to the side of ``outward`` (3,) (the articular
+    surface's outward direction): positive when the facet faces medially, negative laterally (``side`` +1 right,
+    -1 left); the signed counterpart of the transverse angle (90 minus its magnitude, for a facet facing
+    backwards)."""
     n = plane_fit(local_mm)[1]
     n = n if n @ np.asarray(outward, float) >= 0 else -n
-    return float(np.degrees(np.arctan2(-side * n[1], -n[0])))
+    return facet_angles_deg(n, LOCAL_AXES, side)[1]
 
 
 def measure_vertebra(

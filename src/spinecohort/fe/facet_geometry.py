@@ -105,15 +105,3 @@ def joint_geometry(
     pts = centre + xy @ axes + mid[:, None] * normal
     area = float(ConvexHull(facing).volume)
     return JointGeometry(centre + facing.mean(0) @ axes, normal, pts, h_i[ji] - h_s[js], area)
-
-
-def facet_angles_deg(normal: np.ndarray, frame: np.ndarray, side: float) -> tuple[float, float]:
-    """(transverse, frontal) angle (deg) of a joint plane with unit `normal` (SAP -> IAP) on `side` (+1 right,
-    -1 left) of a vertebra with `frame` (columns lateral right, anterior, cranial), in the convention of
-    `spinecohort.fe.facets.FacetContact.normal`: transverse = the plane's angle to the transverse plane
-    (the normal's to the cranial axis), frontal = the plane's angle to the frontal plane, positive when the SAP
-    faces medially, negative when laterally (atan2 of the medial and posterior components)."""
-    medial = -side * frame[:, 0]
-    t = float(np.degrees(np.arccos(np.clip(normal @ frame[:, 2], -1.0, 1.0))))
-    f = float(np.degrees(np.arctan2(normal @ medial, normal @ -frame[:, 1])))
-    return t, f

@@ -61,7 +61,7 @@ class FEMaterials:
     annulus_d1_per_mpa: float = 0.3  # calibrated (config/config.yaml)
     # the ground substance's volumetric term (abaqus.NeoHooke): "quadratic" (J-1)^2/D1 or "logarithmic" (a barrier)
     annulus_volumetric: str = "quadratic"
-    fibre_k1_mpa: float = 3.73
+    fibre_k1_mpa: float = 2.5
     # radial k1 gradient (`annulus_ring_k1`): k1 of the innermost / outermost annulus ring (MPa), linear in
     # between; None (both): the uniform fibre_k1_mpa
     fibre_k1_inner_mpa: float | None = None
