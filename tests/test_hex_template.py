@@ -107,7 +107,8 @@ def test_a_partial_cep_spaces_the_rim_of_every_disc_evenly(partial_cep_template)
 def test_the_rim_insertion_is_fibred_annulus_in_the_bones_element(partial_cep_template):
     """The deck of a partial-CEP template (docs/explanation/fe-model.md): the rim sets carry the annulus' ground
     substance (material AF) and its fibre springs, which insert into the bone as in vivo, and sit in the bone's
-    C3D8 block (not the C3D8R annulus block): 2 springs per annulus and rim hex, 17 discs x (3 + 2) x 32 hexes.
+    C3D8 block (not the C3D8R annulus block): 2 families x 4 springs (`fe.annulus.fibres.springs_per_hex`) per
+    annulus and rim hex, 17 discs x (3 + 2) x 32 hexes.
     Without the springs the 0.7 mm rim was a soft shear layer between the fibres and the bone (T2-T3 unit axial
     rotation 27.6 deg at any fibre angle against 13.4 with them)."""
     fe = fe_model(partial_cep_template)
@@ -118,7 +119,8 @@ def test_the_rim_insertion_is_fibred_annulus_in_the_bones_element(partial_cep_te
         rim = f"D_{up}{lo}_RIM"
         assert section[rim].material == ANNULUS_GROUND and section[rim].orientation is None
         assert len(fe.element_sets[rim]) == 2 * 32 and (fe.element_sets[rim] < n_bone).all()
-    assert len(fe.element_blocks["FIBRES"][1]) == len(DISCS) * (3 + 2) * 32 * 2
+    assert DEFAULT_MATERIALS.fibre_springs_per_hex == 4
+    assert len(fe.element_blocks["FIBRES"][1]) == len(DISCS) * (3 + 2) * 32 * 2 * 4
     # ccx's fibre law cannot reach the rim (C3D8 aborts it): refused by name, not written without fibres
     law = dataclasses.replace(DEFAULT_MATERIALS, fibre_model="elastic_fiber")
     with pytest.raises(ValueError, match=r"cep_diameter_fraction < 1\) needs fe.annulus.fibres.model: springs"):
@@ -193,7 +195,8 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
     for c in mesh.cells:
         counts[c.type] = counts.get(c.type, 0) + len(c.data)
     # hexes in three blocks (C3D8; annulus C3D8R; nucleus C3D20R, read back as meshio's hexahedron20), lines =
-    # ligaments + connectors + facet struts + annulus fibre springs (two per annulus hex)
+    # ligaments + connectors + facet struts + annulus fibre springs (two families x springs_per_hex per annulus hex)
+    per_hex = DEFAULT_MATERIALS.fibre_springs_per_hex
     n_conn = len(fe.element_blocks["CONNECTORS"][1])
     n_gaps = len(fe.element_blocks["FACETS"][1])
     n_disc = len(fe.element_blocks["HEXES_NP"][1])
@@ -202,11 +205,11 @@ def test_inp_round_trips_counts_and_every_set(template, tmp_path):
         "hexahedron": len(template.hexes) - n_disc,
         "hexahedron20": n_disc,
         "triangle": len(template.tris),
-        "line": len(template.ligaments) + n_conn + n_gaps + 2 * n_af,
+        "line": len(template.ligaments) + n_conn + n_gaps + 2 * per_hex * n_af,
     }
-    # the template's nodes, then two nodes per facet strut, then the nucleus' midside nodes, then 4 fibre ends per
-    # annulus hex
-    n_mid = len(fe.nodes) - template.n_nodes - 2 * n_gaps - 4 * n_af
+    # the template's nodes, then two nodes per facet strut, then the nucleus' midside nodes, then two ends per
+    # fibre spring
+    n_mid = len(fe.nodes) - template.n_nodes - 2 * n_gaps - 4 * per_hex * n_af
     assert len(mesh.points) == len(fe.nodes) and n_mid > 0
     np.testing.assert_allclose(mesh.points, fe.nodes, atol=1e-6)
     for name, idx in template.nsets.items():

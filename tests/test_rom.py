@@ -446,11 +446,13 @@ def test_rom_submodel_of_a_functional_unit(template):
     assert len(m.fe.element_blocks["LIGAMENTS"][1]) == 10
     # hex nodes of the layers from L4's inferior to L3's superior endplate + the 8 arch anchor nodes of L3
     # and L4 that the posterior ligaments use (16 ends, shared between none) + the nucleus' midside nodes
-    # + the annulus fibre springs' end nodes: two springs (families) per annulus hex, two ends each, tied inside it
-    assert len(m.fe.nodes) == n2 * (2 * res.body_layers + res.disc_layers + 3) + 16 + n_mid + 4 * n_af
-    assert m.fe.element_blocks["FIBRES"][0] == "SPRINGA" and len(m.fe.element_blocks["FIBRES"][1]) == 2 * n_af
-    hosts = m.fe.embedded_ties[0][:, 1:].reshape(n_af, 4, 8)  # each hex's four ends hang on its 8 corners
-    assert (np.sort(hosts[:, 0], axis=1) == np.sort(blocks["HEXES_DISC"][1], axis=1)).all()
+    # + the annulus fibre springs' end nodes: two families x springs_per_hex (4) per annulus hex, two ends each,
+    # tied inside it
+    q = DEFAULT_MATERIALS.fibre_springs_per_hex
+    assert len(m.fe.nodes) == n2 * (2 * res.body_layers + res.disc_layers + 3) + 16 + n_mid + 4 * q * n_af
+    assert m.fe.element_blocks["FIBRES"][0] == "SPRINGA" and len(m.fe.element_blocks["FIBRES"][1]) == 2 * q * n_af
+    hosts = m.fe.embedded_ties[0][:, 1:].reshape(q, n_af, 4, 8)  # per point, each hex's four ends on its 8 corners
+    assert all((np.sort(h[:, 0], axis=1) == np.sort(blocks["HEXES_DISC"][1], axis=1)).all() for h in hosts)
     assert set(m.rigid_nodes) == {"L3"} and len(m.fixed_nodes) > n2
     assert not np.intersect1d(m.rigid_nodes["L3"], m.fixed_nodes).size
     no_all = extract_rom_model(template, template.nodes, "L3", "L4", include_all=False)
@@ -1029,10 +1031,10 @@ def test_exported_deck_has_fibre_annulus_and_per_group_ligaments(tmp_path, templ
 
     fe = fe_model(template)
     text = write_inp(fe, tmp_path / "m.inp").read_text()
-    # the annulus: its Neo-Hooke ground substance, and two fibre springs per annulus hex of the 17 discs
+    # the annulus: its Neo-Hooke ground substance, and two families x 4 fibre springs per annulus hex of the 17 discs
     assert "*SOLID SECTION, ELSET=D_L4L5_AF, MATERIAL=AF\n" in text and "*HYPERELASTIC, NEO HOOKE\n" in text
     n_af = sum(len(v) for k, v in template.elsets.items() if k.startswith("D_") and k.endswith("_AF"))
-    assert len(fe.element_blocks["FIBRES"][1]) == 2 * n_af and len(fe.embedded_ties[0]) == 4 * n_af
+    assert len(fe.element_blocks["FIBRES"][1]) == 8 * n_af and len(fe.embedded_ties[0]) == 16 * n_af
     law = write_inp(
         fe_model(template, materials=FEMaterials(fibre_model="elastic_fiber")), tmp_path / "l.inp"
     ).read_text()
@@ -1152,7 +1154,8 @@ def test_k1_gradient_gives_each_annulus_ring_its_set_and_material(tmp_path, temp
 
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     fe = copy.deepcopy(cfg["fe"])
-    fe["annulus"]["fibres"].update(k1_inner_mpa=1.17, k1_outer_mpa=1.8)
+    # one spring per hex and family: spring s_ then belongs to hex s_ // 2 and carries its whole volume
+    fe["annulus"]["fibres"].update(k1_inner_mpa=1.17, k1_outer_mpa=1.8, springs_per_hex=1)
     # spring fibres (the default): each hex's springs carry its ring's k1 in their table (within one bin)
     from spinecohort.fe.export import annulus_fibres
     from spinecohort.fe.fibres import BIN_RATIO, fibre_force_n, hex_volumes
