@@ -21,7 +21,7 @@ isochoric one.  Zero force for lambda <= 1 (tension only in an NLGEOM step).  Th
 same Neo-Hooke (C10, D1), as ccx's native ``*HYPERELASTIC, NEO HOOKE``.
 
 A SPRINGA table is force vs elongation, so it depends on V / L: the springs share one table per bin of
-k1 * V / L and rest length (bins `BIN_RATIO` wide, <= 1 % from each hex's own value): 385 tables for the 3,264
+k1 * V / L and rest length (bins `BIN_RATIO` wide, <= 1 % from each spring's own value): 763 tables for the 21,760
 springs of the whole-spine deck instead of one per spring.  Units: mm, N, MPa.
 """
 
