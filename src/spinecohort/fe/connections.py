@@ -69,19 +69,21 @@ def posterior_wall(template: HexTemplate, level: str, band: float = -0.7) -> np.
     return (np.arange(lo + 1, hi)[:, None] * n2 + ring_ids[None, :]).ravel()
 
 
+def skin_nodes(template: HexTemplate, elset: str) -> np.ndarray:
+    """Template node ids of the skin triangles of element set `elset` (empty if the template has none)."""
+    if elset not in template.elsets:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(template.tris[template.elsets[elset]])
+
+
 def arch_nodes(template: HexTemplate, level: str) -> np.ndarray:
     """Template node ids of the posterior-arch skin of vertebra `level` (empty if it has none)."""
-    key = f"POST_{level}"
-    if key not in template.elsets:
-        return np.zeros(0, dtype=np.int64)
-    return np.unique(template.tris[template.elsets[key]])
+    return skin_nodes(template, f"POST_{level}")
 
 
 def sacrum_nodes(template: HexTemplate) -> np.ndarray:
     """Template node ids of the sacrum's skin (empty if the template has none)."""
-    if "SACRUM" not in template.elsets:
-        return np.zeros(0, dtype=np.int64)
-    return np.unique(template.tris[template.elsets["SACRUM"]])
+    return skin_nodes(template, "SACRUM")
 
 
 def arch_owner(template: HexTemplate) -> dict[int, str]:

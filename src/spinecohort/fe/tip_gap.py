@@ -40,20 +40,13 @@ def extension_path(tip: np.ndarray, centre: np.ndarray, lateral: np.ndarray, cra
 
 def ray_distances(origins: np.ndarray, direction: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(R,) distance along the unit ``direction`` from each of ``origins`` (R, 3) to the first of ``triangles``
-    (T, 3, 3) it meets ahead (Moller-Trumbore), inf where it meets none."""
-    v0 = triangles[:, 0]
-    e1, e2 = triangles[:, 1] - v0, triangles[:, 2] - v0
-    h = np.cross(direction, e2)
-    a = np.einsum("ij,ij->i", e1, h)
-    ok = np.abs(a) > 1e-12
-    f = np.where(ok, 1.0 / np.where(ok, a, 1.0), 0.0)
-    s = origins[:, None, :] - v0[None]  # (R, T, 3)
-    u = f * np.einsum("rtj,tj->rt", s, h)
-    q = np.cross(s, e1[None])
-    w = f * (q @ direction)
-    t = f * np.einsum("tj,rtj->rt", e2, q)
-    hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
-    return np.where(hit, t, np.inf).min(axis=1) if triangles.size else np.full(len(origins), np.inf)
+    (T, 3, 3) it meets ahead, inf where it meets none (`spinecohort.mesh.radial.first_hits`)."""
+    if not triangles.size:
+        return np.full(len(origins), np.inf)
+    from spinecohort.mesh.radial import first_hits
+
+    faces = np.arange(3 * len(triangles)).reshape(-1, 3)
+    return first_hits(origins, np.broadcast_to(direction, origins.shape), triangles.reshape(-1, 3), faces)
 
 
 def tip_stops(

@@ -32,16 +32,14 @@ RIM_DEPTH_MM = 2.0
 _CHUNK_PAIRS = 4_000_000
 
 
-def farthest_hits(origins: np.ndarray, directions: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(n,) distance (in units of ``directions``) from each origin (n, 3) along its direction (n, 3) to the
-    farthest crossing of the triangles (Moller-Trumbore, vectorised); ``inf`` where a ray crosses nothing.
-
-    The farthest, not the first: from inside a body a ray leaves it once, and a ray that grazes a concave
-    endplate's rim twice belongs to the outer crossing.
-    """
+def _crossings(
+    origins: np.ndarray, directions: np.ndarray, vertices: np.ndarray, faces: np.ndarray, farthest: bool
+) -> np.ndarray:
+    """(n,) distance along each ray to its farthest (or first) crossing of the triangles, inf where none."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     e1, e2 = b - a, c - a
-    out = np.full(len(directions), -np.inf)
+    fill = -np.inf if farthest else np.inf
+    out = np.full(len(directions), fill)
     step = max(1, _CHUNK_PAIRS // max(len(faces), 1))
     for lo in range(0, len(directions), step):
         d, o = directions[lo : lo + step], origins[lo : lo + step]
@@ -55,9 +53,26 @@ def farthest_hits(origins: np.ndarray, directions: np.ndarray, vertices: np.ndar
         v = np.einsum("nk,ntk->nt", d, q) * inv
         t = np.einsum("tk,ntk->nt", e2, q) * inv
         hit = ok & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > 0)
-        out[lo : lo + step] = np.where(hit, t, -np.inf).max(axis=1)
+        t = np.where(hit, t, fill)
+        out[lo : lo + step] = t.max(axis=1) if farthest else t.min(axis=1)
     out[~np.isfinite(out)] = np.inf
     return out
+
+
+def farthest_hits(origins: np.ndarray, directions: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n,) distance (in units of ``directions``) from each origin (n, 3) along its direction (n, 3) to the
+    farthest crossing of the triangles (Moller-Trumbore, vectorised); ``inf`` where a ray crosses nothing.
+
+    The farthest, not the first: from inside a body a ray leaves it once, and a ray that grazes a concave
+    endplate's rim twice belongs to the outer crossing.
+    """
+    return _crossings(origins, directions, vertices, faces, farthest=True)
+
+
+def first_hits(origins: np.ndarray, directions: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n,) distance along each ray (origins, unit directions (n, 3)) to the first crossing of the triangles ahead
+    of it, ``inf`` where it crosses nothing (`farthest_hits`' test)."""
+    return _crossings(origins, directions, vertices, faces, farthest=False)
 
 
 def closed_body(vertices: np.ndarray, faces: np.ndarray, hole_size_mm: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
