@@ -57,15 +57,12 @@ def test_a_part_held_only_by_tension_only_springs_is_reported_by_name(template, 
     slack = ((0.0, -10.0), (0.0, 0.0), (1000.0, 1.0))  # force 0 for any shortening: a ligament-like table
     fe.sections = [replace(s, spring_force_elongation=slack) if s.elset == "CONN_ARCH_L3" else s for s in fe.sections]
     report = unreachable_report(fe, fe.node_sets["PELVIS"])
-    # L3's skin (every triangle) and the 16 ligaments with an end on L3's arch: SSL, ISL 2 each (above and
-    # below), LF, CL, ITL 4 each (left and right)
+    # L3's skin (every triangle) and the 16 ligaments with an end on L3's arch, named by their segment's set
+    # (L2-L3 above, L3-L4 below): SSL, ISL 1 each, LF, CL, ITL 2 each (left and right)
+    per_segment = {"SSL": 1, "ISL": 1, "LF": 2, "CL": 2, "ITL": 2}
     assert report == {
         "POST_L3": len(template.elsets["POST_L3"]),
-        "LIG_SSL": 2,
-        "LIG_ISL": 2,
-        "LIG_LF": 4,
-        "LIG_CL": 4,
-        "LIG_ITL": 4,
+        **{f"LIG_{g}_{seg}": n for g, n in per_segment.items() for seg in ("L2L3", "L3L4")},
         "CONN_ARCH_L3": len(fe.element_sets["CONN_ARCH_L3"]),
     }
     deck = tmp_path / "model_00013.inp"
@@ -136,10 +133,15 @@ def test_exported_disc_is_c3d8r_annulus_and_c3d20r_nucleus_tied_to_its_neighbour
             np.testing.assert_array_equal(
                 np.sort(both[fe.element_sets[name]], axis=0), np.sort(template.hexes[template.elsets[name]], axis=0)
             )
-    # connectors are linear (stiff in compression too), ligaments tension-only
+    # connectors are linear (stiff in compression too); ligaments one table per group and segment: tension-only
+    # where slack in the neutral posture (the thoracic PLL's bilinear law, the lumbar PLL's slack curve), the
+    # lumbar ALL taut (Remus et al. 2021: it gives back its neutral tension when it shortens)
     sec = {s.elset: s for s in fe.sections}
     assert sec["CONN_SACRUM"].spring_force_elongation == CONNECTOR_TABLE
-    assert sec["LIG_PLL"].spring_force_elongation[0][0] == 0.0
+    assert "LIG_PLL" in fe.element_sets and "LIG_PLL" not in sec  # the union, without a section of its own
+    assert sec["LIG_PLL_T6T7"].spring_force_elongation[0][0] == 0.0
+    assert sec["LIG_PLL_L3L4"].spring_force_elongation[0][0] == 0.0
+    assert sec["LIG_ALL_L3L4"].spring_force_elongation[0][0] < 0.0
 
 
 HAS_CCX = shutil.which("ccx") is not None

@@ -559,7 +559,8 @@ def test_facet_contact_adds_one_gap_per_joint_tied_to_the_arches(template):
             assert table[-2][1] == -one.tip_clearance_mm  # the stop's clearance (default 2.0 mm)
             np.testing.assert_allclose(direction, vertebra_frame(template, template.nodes, lower)[0][:, 2], atol=1e-12)
         else:
-            assert table[-2][1] == -one.clearance_mm  # the joint's clearance (default 0.79 mm)
+            # the joint's clearance: L2-L3 and L3-L4 are lumbar joints (default 0.5 mm; 0.79 mm at the others)
+            assert table[-2][1] == -one.lumbar_clearance_mm == -one.clearance_for("L2") == -0.5
     # each is tied to its own vertebra: L2 (top) by the rigid body, L4 (bottom) fixed, L3 by its arch truss
     arch_l3 = m.fe.element_blocks["ARCHES"][1]
     for lower, upper in conn:
@@ -1040,9 +1041,10 @@ def test_exported_deck_has_fibre_annulus_and_per_group_ligaments(tmp_path, templ
     ).read_text()
     assert law.count("SYSTEM=CYLINDRICAL") == 17  # one per disc, T1-T2 ... L5-S1
     assert "*SOLID SECTION, ELSET=D_L4L5_AF, MATERIAL=ELASTIC_FIBER_AF, ORIENTATION=OR_D_L4L5" in law
-    assert "*SPRING, ELSET=LIG_ALL, NONLINEAR" in text
+    # one table per group and segment: the ALL of each of the 17 segments, none without the ALL
+    assert text.count("*SPRING, ELSET=LIG_ALL_") == 17 and "*SPRING, ELSET=LIG_ALL_L5S1, NONLINEAR" in text
     assert (
-        "*SPRING, ELSET=LIG_ALL, NONLINEAR"
+        "*SPRING, ELSET=LIG_ALL_"
         not in write_inp(fe_model(template, include_all=False), tmp_path / "n.inp").read_text()
     )
 

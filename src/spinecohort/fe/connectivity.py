@@ -27,13 +27,16 @@ def one_sided_sets(model: FEModel) -> set[str]:
     """Upper-case names of the one-sided SPRINGA sections: tension only (the table's first row, the smallest
     elongation, is (0, <= 0): a ligament) or compression only (its last row is (0, >= 0): a facet contact
     strut, `spinecohort.fe.facets.strut_table`); ccx holds the force beyond the table's ends, so such a spring
-    carries nothing on one side and never joins two parts for certain."""
+    carries nothing on one side and never joins two parts for certain.  A ligament (set ``LIG_*``) counts as one
+    even when taut in the neutral posture (`spinecohort.fe.ligament_curves`): it pushes only until it has given
+    back the tension it held there."""
     out = set()
     for sec in model.sections:
         table = sec.spring_force_elongation
         if table is None:
             continue
-        if (table[0][0] == 0.0 and table[0][1] <= 0.0) or (table[-1][0] == 0.0 and table[-1][1] >= 0.0):
+        ligament = sec.elset.upper().startswith("LIG_")
+        if ligament or (table[0][0] == 0.0 and table[0][1] <= 0.0) or (table[-1][0] == 0.0 and table[-1][1] >= 0.0):
             out.add(sec.elset.upper())
     return out
 

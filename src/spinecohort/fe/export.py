@@ -12,6 +12,7 @@ import numpy as np
 
 from spinecohort.fe.abaqus import FEModel, Orientation, Section
 from spinecohort.fe.fibres import EmbeddedFibres, embedded_fibres
+from spinecohort.fe.ligament_curves import ligament_segments
 from spinecohort.fe.materials import (
     ANNULUS_GROUND,
     ANNULUS_MATERIAL,
@@ -20,9 +21,8 @@ from spinecohort.fe.materials import (
     annulus_material,
     annulus_ring_k1,
     annulus_ring_sets,
-    fibre_law,
-    ligament_table,
     material_cards,
+    spring_table,
 )
 from spinecohort.fe.writers import write_inp, write_vtu
 from spinecohort.mesh.template import RIM_TISSUE, HexTemplate
@@ -224,6 +224,7 @@ def fe_model(
     blocks["LIGAMENTS"] = ("SPRINGA", template.ligaments[lig_keep])
     offset = {"hex": 0, "tri": len(template.hexes), "lig": len(template.hexes) + len(template.tris)}
     lig_new = np.cumsum(lig_keep) - 1
+    lig_segments = ligament_segments(template)
     elsets = {}
     ring_sets = annulus_ring_sets(template, mats)  # {} unless k1 is graded
     for name, idx in template.elsets.items():
@@ -273,11 +274,18 @@ def fe_model(
         elif kind == "tri":
             sections.append(Section(elset=name, material="CORTICAL", thickness_mm=mats.shell_thickness_mm))
         else:
-            group = name.split("_", 1)[1]
-            ends = pts[template.ligaments[template.elsets[name]]]
-            rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
-            law = fibre_law(mats.ligaments[group], template.ligament_fibres(group))  # a bundle's fibre
-            sections.append(Section(elset=name, spring_force_elongation=ligament_table(law, rest)))
+            # one table per group and segment, at the segment's mean rest length; LIG_<group> stays their union
+            group, ids = name.split("_", 1)[1], template.elsets[name]
+            ids = ids[lig_keep[ids]]
+            segs = lig_segments[ids]
+            for seg in dict.fromkeys(segs):
+                sub = ids[segs == seg]
+                ends = pts[template.ligaments[sub]]
+                rest = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
+                sub_name = f"{name}_{seg.replace('-', '')}"
+                elsets[sub_name] = offset["lig"] + lig_new[sub]
+                table = spring_table(mats, group, seg, template.ligament_fibres(group), rest)  # a bundle's fibre
+                sections.append(Section(elset=sub_name, spring_force_elongation=table))
     sections += [Section(elset=name, spring_force_elongation=CONNECTOR_TABLE) for name in conn_sets]
     if fn is not None:
         sections += fn.section_list()

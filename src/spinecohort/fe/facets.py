@@ -83,6 +83,15 @@ class FacetContact:
     #: struts per joint where the template has the joint's articular surfaces (`spinecohort.fe.facet_geometry`),
     #: spread over the part of the surfaces that face each other, the joint's stiffness split among them
     struts_per_joint: int = 4
+    #: the initial gap (mm) of the lumbar joints L1-L2 ... L5-S1 where it differs from ``clearance_mm`` (None: the
+    #: same): the gap of the model built on the same lumbar bones (config ``fe.facets.lumbar_clearance_mm``)
+    lumbar_clearance_mm: float | None = 0.5
+
+    def clearance_for(self, upper: str) -> float:
+        """Initial gap (mm) of the joints of the segment whose upper vertebra is ``upper``."""
+        if self.lumbar_clearance_mm is not None and upper.startswith("L"):
+            return self.lumbar_clearance_mm
+        return self.clearance_mm
 
     @staticmethod
     def _interp(anchors: tuple[tuple[str, float], ...], level: str) -> float:
@@ -127,6 +136,7 @@ class FacetContact:
             None if strut is None else float(strut),
             float(cfg.get("blend_mm", cls.blend_mm)),
             int(cfg.get("struts_per_joint", cls.struts_per_joint)),
+            _optional(cfg.get("lumbar_clearance_mm")),
         )
 
 
@@ -189,6 +199,10 @@ def strut_table(
     force = np.where(depth <= w, -k * depth**2 / (2 * w), -k * (depth - 0.5 * w)) + 0.0  # no -0.0 in decks
     rows = [(float(f), float(-clearance_mm - d)) for f, d in zip(force, depth)]
     return tuple(rows + [(0.0, float(length_mm))])
+
+
+def _optional(value) -> float | None:
+    return None if value is None else float(value)
 
 
 def facet_pairs(template: HexTemplate, allowed: np.ndarray | None = None) -> np.ndarray:
@@ -315,7 +329,7 @@ def joint_struts(template: HexTemplate, points: np.ndarray, pairs: np.ndarray, f
     return Struts(
         np.concatenate(at) if s else np.zeros((0, 3)),
         np.concatenate(direction) if s else np.zeros((0, 3)),
-        np.full(s, facets.clearance_mm),
+        np.array([facets.clearance_for(up) for up in upper], dtype=np.float64),
         np.asarray(stiff, dtype=np.float64),
         upper,
         lower,

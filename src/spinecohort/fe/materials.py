@@ -35,6 +35,7 @@ import numpy as np
 
 from spinecohort.fe.abaqus import LinearElastic, MooneyRivlin, NeoHooke, UserMaterial
 from spinecohort.fe.facets import FacetContact
+from spinecohort.fe.ligament_curves import curve_table, load_segment_ligaments
 from spinecohort.mesh.template import LIGAMENT_GROUPS, RIM_TISSUE, HexTemplate
 
 
@@ -75,6 +76,9 @@ class FEMaterials:
     fibre_springs_per_hex: int = 4
     ligaments: dict[str, LigamentLaw] = field(default_factory=lambda: dict(DEFAULT_LIGAMENTS))
     include_all: bool = True  # the anterior longitudinal ligament (not among the seed's six groups)
+    #: (segment, group) -> the force-elongation curve that replaces the group's law there
+    #: (`spinecohort.fe.ligament_curves`; config ``fe.lumbar_ligaments``, default Remus et al. 2021's L1-S1)
+    segment_ligaments: dict = field(default_factory=lambda: load_segment_ligaments("remus2021"))
     facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
 
     def __post_init__(self):
@@ -202,6 +206,8 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         fibre_springs_per_hex=int(fib.get("springs_per_hex", 4)),
         ligaments=ligs,
         include_all=bool(fe["include_all"]),
+        # absent (a release made before the per-segment curves) or null: the groups' laws at every segment
+        segment_ligaments=load_segment_ligaments(fe["lumbar_ligaments"]) if fe.get("lumbar_ligaments") else {},
         facets=FacetContact.from_config(fe.get("facets")),  # None: a release made before facets were exported
     )
 
@@ -212,6 +218,18 @@ def fibre_law(law: LigamentLaw, fibres: int) -> LigamentLaw:
     if fibres < 1:
         raise ValueError(f"a ligament needs at least one fibre, got {fibres}")
     return dataclasses.replace(law, area_mm2=law.area_mm2 / fibres)
+
+
+def spring_table(
+    mats: FEMaterials, group: str, segment: str, fibres: int, rest_length_mm: float
+) -> tuple[tuple[float, float], ...]:
+    """The force table of one fibre (of ``fibres``) of a ligament of ``group`` in ``segment`` (``"L5-S1"``): the
+    segment's own curve where ``mats.segment_ligaments`` has one (`spinecohort.fe.ligament_curves`), else the
+    group's bilinear law with the area split across the fibres (`fibre_law`, `ligament_table`)."""
+    curve = mats.segment_ligaments.get((segment, group))
+    if curve is not None:
+        return curve_table(curve, fibres, rest_length_mm)
+    return ligament_table(fibre_law(mats.ligaments[group], fibres), rest_length_mm)
 
 
 def ligament_force_n(law: LigamentLaw, strain: np.ndarray, toe_strain: float = 0.01, blend: float = 0.2) -> np.ndarray:

@@ -51,13 +51,13 @@ from spinecohort.fe.connections import (
 )
 from spinecohort.fe.export import add_fibres, annulus_fibres, disc_orientations, hex_blocks, hex_section
 from spinecohort.fe.facets import FacetContact, facet_nodes, facet_pairs, vertebra_frame
+from spinecohort.fe.ligament_curves import ligament_segments
 from spinecohort.fe.materials import (
     DEFAULT_MATERIALS,
     FEMaterials,
     annulus_ring_sets,
-    fibre_law,
-    ligament_table,
     material_cards,
+    spring_table,
 )
 from spinecohort.fe.potting import potted_plate
 from spinecohort.fe.quadratic import quadratic_blocks, ties_on
@@ -168,6 +168,7 @@ def extract_rom_model(
         keep_lig &= np.isin(lig_group, list(ligament_groups))
     ligs = template.ligaments[keep_lig]
     groups = lig_group[keep_lig]
+    lig_segments = ligament_segments(template)[keep_lig]
     # facet joints: the capsular-ligament anchors (IAP tip of the upper vertebra, SAP tip of the lower one) of
     # every segment in the model (`spinecohort.fe.facets`)
     joints = facet_pairs(template, allowed) if facets is not None else np.zeros((0, 2), dtype=np.int64)
@@ -235,11 +236,11 @@ def extract_rom_model(
     if len(lig_conn):
         blocks["LIGAMENTS"] = ("SPRINGA", lig_conn)
         rest = np.linalg.norm(pts[lig_conn[:, 1]] - pts[lig_conn[:, 0]], axis=1)
-        for i, (g, length) in enumerate(zip(groups, rest)):
+        for i, (g, seg, length) in enumerate(zip(groups, lig_segments, rest)):
             name = f"LIG_{g}_{i + 1}"
             elsets[name] = np.array([n_hexes + i])
-            law = fibre_law(mats.ligaments[g], template.ligament_fibres(g))  # a bundle's fibre: its share of the area
-            sections.append(Section(elset=name, spring_force_elongation=ligament_table(law, length)))
+            table = spring_table(mats, g, seg, template.ligament_fibres(g), length)  # a bundle's fibre: its share
+            sections.append(Section(elset=name, spring_force_elongation=table))
             lig_counts[g] = lig_counts.get(g, 0) + 1
     if fn is not None:
         first = n_hexes + len(lig_conn)
