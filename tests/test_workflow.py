@@ -83,7 +83,7 @@ def test_dag_produces_every_stage_output(test_run):
     deck = Path(L.template_deck).read_text()
     assert "*ELEMENT, TYPE=C3D8, ELSET=HEXES\n" in deck and "*ELEMENT, TYPE=C3D8R, ELSET=HEXES_DISC\n" in deck
     assert "*ELEMENT, TYPE=C3D20R, ELSET=HEXES_NP\n" in deck and "*EQUATION\n" in deck
-    assert "*SPRING, ELSET=LIG_PLL, NONLINEAR" in deck and "*SPRING, ELSET=CONN_ARCH_L3, NONLINEAR" in deck
+    assert "*SPRING, ELSET=LIG_PLL_L3L4, NONLINEAR" in deck and "*SPRING, ELSET=CONN_ARCH_L3, NONLINEAR" in deck
     for rule in (
         "synthetic_cohort",
         "validate_cohort",
