@@ -70,7 +70,7 @@ def idp_table() -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["mode", "variant", "disc", "load_case", "pressure_mpa", "load_fraction"])
 
 
-def test_each_kind_of_reference_gets_its_criterion_and_other_loadings_are_left_out():
+def test_each_kind_of_reference_gets_its_criterion_and_other_loadings_are_shown_or_left_out():
     refs = pd.DataFrame(
         ref("L1-L5", "flexion", "rom", {"median": 20.0, "min": 15.0, "max": 30.0})
         + ref("L3-L4", "extension", "rom", {"mean": 3.3, "sd": 1.5})
@@ -81,8 +81,14 @@ def test_each_kind_of_reference_gets_its_criterion_and_other_loadings_are_left_o
         + ref("L5-S1", "flexion", "rom", {"mean": 6.0, "sd": 2.0}, moment=np.nan, source="unstated")
         + ref("L4-L5", "standing_relaxed", "intradiscal_pressure", {"single": 0.5}, moment=np.nan, unit="MPa")
     )
-    got = reference_intervals(refs, 7500.0, 1.0).set_index(["level", "motion", "source"])
-    assert len(got) == 5  # the posture (in vivo) is not a load direction: left out
+    got = reference_intervals(refs, 7500.0, 1.0)
+    # the posture (in vivo) is not a load direction and the follower load not our loading: left out; the same
+    # source's flexion under 10 N.m is a second reference beside the 7.5 N.m one, shown and never judged
+    assert len(got) == 6
+    other = got[(got["level"] == "L1-L5") & (got["motion"] == "flexion") & (got["reference"] == "99 (mean)")]
+    assert len(other) == 1 and not other["judged"].iloc[0]
+    assert other["criterion"].iloc[0] == "at 10 N·m, not 7.5: reported, not judged"
+    got = got.drop(other.index).set_index(["level", "motion", "source"])
     # a moment the source does not state: the mean shown beside ours, never judged
     unstated = got.loc[("L5-S1", "flexion", "unstated")]
     assert not unstated["judged"] and unstated["reference"] == "6 (mean)"

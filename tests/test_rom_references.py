@@ -20,8 +20,9 @@ def test_every_file_parses_with_consistent_units():
     # one unit per quantity, the quantity's own
     assert table.groupby("quantity")["unit"].nunique().max() == 1
     assert (table["unit"] == table["quantity"].map(R.QUANTITY_UNITS)).all()
-    # pure moments in N.mm (the project's unit): 7.5 N.m, or Liebsch & Wilke's 5 N.m; empty where none applies
-    assert set(table["moment_nmm"].dropna()) <= {7500, 5000}
+    # pure moments in N.mm (the project's unit): 7.5 N.m, Liebsch & Wilke's 5 N.m or Yamamoto's 10 N.m; empty
+    # where none applies
+    assert set(table["moment_nmm"].dropna()) <= {7500, 5000, 10000}
     assert table["source"].str.len().min() > 10 and table["provenance"].notna().all()
 
 
@@ -296,3 +297,20 @@ def test_every_number_is_physically_plausible():
     assert spans.loc[spans["quantity"].isin(["rom", "rom_full"]), "value"].lt(60).all()
     # Dreischarf's model-vs-in-vitro median differences (2, 1, 5 deg) are a fraction of a span's range
     assert spans.loc[spans["quantity"] == "rom_median_difference", "value"].between(0, 10).all()
+
+
+def test_yamamoto_per_level_rom_is_the_abstract_s():
+    """Yamamoto et al. 1989's abstract: flexion, extension, axial rotation (one side), lateral bending (one side)
+    per level at 10 N.m; every number and the moment as it states them."""
+    got = R.in_vitro_segmental_rom().pivot(index="level", columns="motion", values="value")
+    expected = {
+        "L1-L2": (5.8, 4.3, 2.3, 4.9),
+        "L2-L3": (6.5, 4.3, 2.6, 7.0),
+        "L3-L4": (7.5, 3.7, 2.6, 5.7),
+        "L4-L5": (8.9, 5.8, 2.2, 5.7),
+        "L5-S1": (10.0, 7.8, 1.4, 5.5),
+    }
+    for level, values in expected.items():
+        row = got.loc[level, ["flexion", "extension", "axial_rotation", "lateral_bending"]]
+        assert row.tolist() == list(values), level
+    assert set(R.in_vitro_segmental_rom()["moment_nmm"]) == {10000.0}

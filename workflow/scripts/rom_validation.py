@@ -19,7 +19,9 @@ with to_file(snakemake.log[0]) as log:
         "intradiscal_pressure": references.intradiscal_pressure(),
         "facet_force": references.facet_forces(),
         "lumbar_total_rom": references.lumbar_total_rom(),
-        "segmental_rom_same_geometry": references.remus_segmental_rom(),
+        "segmental_rom_same_geometry": pd.concat(
+            [references.remus_segmental_rom(), references.in_vitro_segmental_rom()]
+        ),
     }
     more = outcomes(table, idp, facets, references, rom["moment_nmm"], rom["acceptance_sd"])
     more.to_csv(snakemake.output.outcomes, index=False)

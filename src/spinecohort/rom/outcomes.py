@@ -6,8 +6,9 @@ and a verdict (docs/explanation/validation.md).
 Criteria (`reference_intervals`): an in-vitro median with its range accepts the range (min..max); a mean +- SD
 accepts mean +- ``acceptance_sd`` SD; a range of models (low..high) accepts the range; a single value (one model,
 or a mean without its SD) is reported beside ours, not judged.  Only references under the run's loading are
-compared: the same pure moment and no preload.  Without a reference our value is reported with the verdict
-"no reference obtained".
+compared: the same pure moment and no preload; one under another pure moment (Yamamoto et al. 1989's per-level
+ROM at 10 N·m) or an unstated one is reported beside ours, not judged.  Without a reference our value is reported
+with the verdict "no reference obtained".
 
 Our values come from the lumbar model, intact (`spinecohort.rom.run.solve_model_loads`; from the functional units
 when a run has no lumbar model):
@@ -24,7 +25,7 @@ when a run has no lumbar model):
   lowest joint (L1-L2);
 * L1-L5 total rotation: the sum of L1-L2 .. L4-L5 per load case, in the reference's convention (``rom`` one
   direction, lateral bending and axial rotation the mean of both sides; ``rom_full`` both directions added);
-* segmental ROM L1-S1 the same way per segment.
+* segmental ROM L1-S1 the same way per segment, beside the same-geometry model and in vitro.
 
 A load case short of the full moment gives no value (NaN, not judged).  Units: MPa, N, degrees.
 """
@@ -74,18 +75,21 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
     r = refs.assign(**{c: refs[c] if c in refs else "" for c in ("facet", "condition")})
     moment = pd.to_numeric(r.get("moment_nmm", np.nan), errors="coerce")
     preload = pd.to_numeric(r.get("preload_n", np.nan), errors="coerce").fillna(0.0)
-    keep = (np.isclose(moment, moment_nmm) | moment.isna()) & (preload == 0.0) & r["motion"].isin(LOAD_DIRECTIONS)
-    r = r[keep].assign(unstated=moment[keep].isna())
+    keep = (preload == 0.0) & r["motion"].isin(LOAD_DIRECTIONS)
+    other = ~np.isclose(moment, moment_nmm) & moment.notna()  # another moment: shown, never judged
+    # the moment is part of a reference's key: one source's values under two moments are two references
+    r = r[keep].assign(unstated=moment[keep].isna() | other[keep], moment=moment[keep].fillna(-1.0))
     if not len(r):
         return pd.DataFrame(columns=out_cols)
     # a force the source gives without naming the side is compared with our mean of the two sides
     r = r.assign(facet=r["facet"].fillna("").replace("unspecified", ""), condition=r["condition"].fillna(""))
-    unstated = r.groupby(cols)["unstated"].any()
-    wide = r.pivot_table(index=cols, columns="statistic", values="value", aggfunc="first").reset_index()
+    key = cols + ["moment"]
+    unstated = r.groupby(key)["unstated"].any()
+    wide = r.pivot_table(index=key, columns="statistic", values="value", aggfunc="first").reset_index()
     rows = []
     for w in wide.to_dict("records"):
-        has = {k for k, v in w.items() if k not in cols and np.isfinite(v)}
-        hidden = bool(unstated[tuple(w[c] for c in cols)])
+        has = {k for k, v in w.items() if k not in key and np.isfinite(v)}
+        hidden = bool(unstated[tuple(w[c] for c in key)])
         if hidden:  # the moment is not stated: shown beside ours, never judged
             has -= {"sd", "min", "max", "low", "high"}
         if not has:
@@ -103,7 +107,14 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
             stat = sorted(has)[0]
             lo = hi = np.nan
             text = f"{w[stat]:g} ({stat})"
-            crit = "moment not stated: reported, not judged" if hidden else "one value: reported, not judged"
+            m = w["moment"]
+            crit = (
+                "one value: reported, not judged"
+                if not hidden
+                else "moment not stated: reported, not judged"
+                if m < 0
+                else f"at {m / 1000:g} N·m, not {moment_nmm / 1000:g}: reported, not judged"
+            )
         rows.append({**{c: w[c] for c in cols}, "reference": text, "criterion": crit, "accept_low": lo,
                      "accept_high": hi, "judged": bool(np.isfinite(lo))})  # fmt: skip
     return pd.DataFrame(rows, columns=out_cols)
@@ -287,7 +298,7 @@ HEADINGS = {
     "intradiscal_pressure": "Intradiscal pressure (nucleus)",
     "facet_force": "Facet joint forces (contact struts and extension stops)",
     "lumbar_total_rom": "L1–L5 total range of motion",
-    "segmental_rom_same_geometry": "Segmental ROM L1–S1 beside the same-geometry model (Remus et al. 2021)",
+    "segmental_rom_same_geometry": "Segmental ROM L1–S1 beside the same-geometry model (Remus et al. 2021) and in vitro (Yamamoto et al. 1989)",
     "ordering": "Physiological orderings",
 }
 

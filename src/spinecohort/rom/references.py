@@ -9,7 +9,7 @@ where none applies or the source does not state it), ``n``, ``condition``, ``loc
 not obtained are listed, one group a row, in ``gaps/not_obtained.csv`` (`not_obtained`).
 
 The validation tables ask for one kind of reference at a time through `lumbar_total_rom`, `intradiscal_pressure`,
-`facet_forces` and `remus_segmental_rom`: each returns the `ACCESSOR_COLUMNS` (plus ``facet`` for facet forces),
+`facet_forces`, `remus_segmental_rom` and `in_vitro_segmental_rom`: each returns the `ACCESSOR_COLUMNS` (plus ``facet`` for facet forces),
 sorted cranial to caudal, and an empty frame of the same columns while its numbers are only in the gaps list.
 
 Quantities and their units:
@@ -218,6 +218,7 @@ def reference_coverage(table: pd.DataFrame, gaps: pd.DataFrame) -> pd.DataFrame:
 
 DREISCHARF_SOURCE = "Dreischarf et al. 2014, J Biomech 47:1757"
 REMUS_SOURCE = "Remus et al. 2021, PLoS ONE 16:e0250456"
+YAMAMOTO_SOURCE = "Yamamoto et al. 1989, Spine 14:1256"
 
 #: Columns every accessor returns, in this order (`facet_forces` adds ``facet``).
 ACCESSOR_COLUMNS: tuple[str, ...] = (
@@ -273,6 +274,14 @@ def remus_segmental_rom(table: pd.DataFrame | None = None) -> pd.DataFrame:
     table = _references(table)
     segment = table["level"].isin([f"{a}-{b}" for a, b in zip(VERTEBRAE[12:], VERTEBRAE[13:])])
     rows = table[(table["source"] == REMUS_SOURCE) & table["quantity"].isin(_ROM_QUANTITIES) & segment]
+    return _tidy(rows)
+
+
+def in_vitro_segmental_rom(table: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Yamamoto et al. 1989's in-vitro ROM (deg, one side) per segment L1-L2 ... L5-S1 at 10 N·m: the per-level
+    shape beside ours (a moment other than the validation's, so reported, not judged)."""
+    table = _references(table)
+    rows = table[(table["source"] == YAMAMOTO_SOURCE) & table["quantity"].isin(_ROM_QUANTITIES)]
     return _tidy(rows)
 
 
