@@ -21,8 +21,10 @@ the defaults below equal config/config.yaml, each with its literature source:
   transition strain and cross-section areas of Goel et al. 1995 (as tabulated in Kim et al. 2013, BMC
   Musculoskelet Disord 14:220, Table 1); the anterior longitudinal ligament (ALL) is a seventh group,
   switchable.  Where the template builds ALL, PLL, LF and CL as fibre bundles, each fibre has the group's area
-  divided by its fibre count (`fibre_law`).  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
-  export deck uses one table per group at the group's mean rest length in the model; the ROM decks
+  divided by its fibre count (`fibre_law`).  At L1-L2 ... L5-S1 the segment's own force-elongation curves replace
+  the group laws (`segment_ligaments`, config ``fe.lumbar_ligaments``: `spinecohort.fe.ligament_curves`; the table
+  of a spring: `spring_table`).  A spring's table is force vs elongation, so it depends on the ligament's rest length: the
+  export deck uses one table per group and segment at that segment's mean rest length in the model; the ROM decks
   (`spinecohort.rom.submodel`) use one table per ligament element.
 """
 
