@@ -3,9 +3,13 @@ closed forms, the vendored table as its README describes it, and which segments 
 
 from __future__ import annotations
 
+import importlib.util
+import os
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from spinecohort.cohort.landmarks import LEVELS
@@ -18,6 +22,8 @@ from spinecohort.fe.ligament_curves import (
     toe_linear_n,
 )
 from spinecohort.fe.materials import DEFAULT_MATERIALS, FEMaterials, ligament_table, spring_table
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_toe_linear_law_closed_form():
@@ -98,3 +104,17 @@ def test_spring_table_takes_the_segment_curve_where_there_is_one():
     thoracic = spring_table(DEFAULT_MATERIALS, "ISL", "T6-T7", 1, 8.7)
     assert thoracic == ligament_table(DEFAULT_MATERIALS.ligaments["ISL"], 8.7)
     assert spring_table(FEMaterials(segment_ligaments={}), "ISL", "L4-L5", 1, 8.7) == thoracic
+
+
+REMUS_REPO = Path(
+    os.environ.get("SPINECOHORT_REMUS_REPO", "/work/.mirror/RemusR9+artisynth_lumbosacralSpineModel/repo")
+)
+
+
+@pytest.mark.skipif(not REMUS_REPO.exists(), reason="the Remus repository's git directory (SPINECOHORT_REMUS_REPO)")
+def test_the_script_rebuilds_the_vendored_table():
+    # scripts/build_lumbar_ligaments.py on the upstream repository gives the vendored CSV exactly
+    spec = importlib.util.spec_from_file_location("build", ROOT / "scripts" / "build_lumbar_ligaments.py")
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    pd.testing.assert_frame_equal(build.table(REMUS_REPO), pd.read_csv(build.OUT), check_dtype=False)
