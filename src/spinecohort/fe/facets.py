@@ -136,7 +136,7 @@ class FacetContact:
             None if strut is None else float(strut),
             float(cfg.get("blend_mm", cls.blend_mm)),
             int(cfg.get("struts_per_joint", cls.struts_per_joint)),
-            _optional(cfg.get("lumbar_clearance_mm")),
+            None if cfg.get("lumbar_clearance_mm") is None else float(cfg["lumbar_clearance_mm"]),
         )
 
 
@@ -199,10 +199,6 @@ def strut_table(
     force = np.where(depth <= w, -k * depth**2 / (2 * w), -k * (depth - 0.5 * w)) + 0.0  # no -0.0 in decks
     rows = [(float(f), float(-clearance_mm - d)) for f, d in zip(force, depth)]
     return tuple(rows + [(0.0, float(length_mm))])
-
-
-def _optional(value) -> float | None:
-    return None if value is None else float(value)
 
 
 def facet_pairs(template: HexTemplate, allowed: np.ndarray | None = None) -> np.ndarray:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from importlib import resources
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -45,15 +44,12 @@ class SegmentLigament:
     stiffness_n_per_spring: float
 
 
-def load_segment_ligaments(source: str | Path = "remus2021") -> dict[tuple[str, str], SegmentLigament]:
-    """(segment e.g. ``"L5-S1"``, group) -> its `SegmentLigament`, from a vendored source name or a CSV path."""
-    if isinstance(source, str) and source in SOURCES:
-        path = Path(str(resources.files("spinecohort") / "data" / "ligaments" / SOURCES[source]))
-    elif isinstance(source, Path) or Path(str(source)).suffix == ".csv":
-        path = Path(source)
-    else:
+def load_segment_ligaments(source: str = "remus2021") -> dict[tuple[str, str], SegmentLigament]:
+    """(segment e.g. ``"L5-S1"``, group) -> its `SegmentLigament`, from a vendored source (`SOURCES`)."""
+    if source not in SOURCES:
         raise ValueError(f"fe.lumbar_ligaments: unknown source {source!r}; one of {sorted(SOURCES)} or null")
-    df = pd.read_csv(path)
+    path = resources.files("spinecohort") / "data" / "ligaments" / SOURCES[source]
+    df = pd.read_csv(str(path))
     bad = sorted(set(df["group"]) - set(LIGAMENT_GROUPS))
     if bad:
         raise ValueError(f"{path}: ligament groups {bad} are not among {LIGAMENT_GROUPS}")
@@ -105,27 +101,29 @@ def curve_table(
     return tuple((float(f) + 0.0, float(x)) for f, x in zip(force, d))
 
 
-def node_levels(template: HexTemplate) -> dict[int, str]:
-    """Template node id -> its vertebra (``"S1"`` for the S1 plate and the sacrum) for every node of a bone."""
+def node_bones(template: HexTemplate) -> np.ndarray:
+    """(N,) index into ``LEVELS + ("S1",)`` of the bone every template node belongs to (the S1 plate and the
+    sacrum: S1), -1 for a node of no bone (a disc's)."""
     from spinecohort.fe.connections import arch_owner
 
-    out = {}
-    for i, layer in enumerate(template.layers):
-        level = "S1" if layer.get("kind") == "s1" else layer.get("level") if layer.get("kind") == "body" else None
-        if level is not None:
-            out.update(dict.fromkeys(np.flatnonzero(template.layer_of_node == i).tolist(), level))
-    out.update(arch_owner(template))
+    bones = {lv: i for i, lv in enumerate([*LEVELS, "S1"])}
+    layer_bone = np.array(
+        [bones["S1"] if ly.get("kind") == "s1" else bones.get(ly.get("level"), -1) if ly.get("kind") == "body" else -1
+         for ly in template.layers]
+    )  # fmt: skip
+    out = np.full(template.n_nodes, -1, dtype=np.int64)
+    out[: template.n_hex_nodes] = layer_bone[template.layer_of_node]
+    skin = arch_owner(template)
+    out[np.fromiter(skin, dtype=np.int64, count=len(skin))] = [bones[v] for v in skin.values()]
     return out
 
 
 def ligament_segments(template: HexTemplate) -> np.ndarray:
     """(L,) the segment (``"L5-S1"``) of every ligament element of the template, from its two end nodes' bones."""
-    owner = node_levels(template)
-    order = {lv: i for i, lv in enumerate([*LEVELS, "S1"])}
-    out = []
-    for a, b in template.ligaments:
-        pair = sorted({owner.get(int(a)), owner.get(int(b))} - {None}, key=order.__getitem__)
-        if len(pair) != 2:
-            raise ValueError(f"ligament ({a}, {b}) does not join two bones: its ends belong to {pair}")
-        out.append(f"{pair[0]}-{pair[1]}")
-    return np.array(out)
+    names = np.array([*LEVELS, "S1"])
+    ends = np.sort(node_bones(template)[template.ligaments], axis=1)
+    bad = (ends[:, 0] < 0) | (ends[:, 0] == ends[:, 1])
+    if bad.any():
+        a, b = template.ligaments[np.flatnonzero(bad)[0]]
+        raise ValueError(f"ligament ({a}, {b}) does not join two bones: its ends belong to {names[ends[bad][0]]}")
+    return np.char.add(np.char.add(names[ends[:, 0]], "-"), names[ends[:, 1]])

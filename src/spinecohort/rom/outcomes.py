@@ -76,21 +76,21 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
     moment = pd.to_numeric(r.get("moment_nmm", np.nan), errors="coerce")
     preload = pd.to_numeric(r.get("preload_n", np.nan), errors="coerce").fillna(0.0)
     keep = (preload == 0.0) & r["motion"].isin(LOAD_DIRECTIONS)
-    other = ~np.isclose(moment, moment_nmm) & moment.notna()  # another moment: shown, never judged
-    # the moment is part of a reference's key: one source's values under two moments are two references
-    r = r[keep].assign(unstated=moment[keep].isna() | other[keep], moment=moment[keep].fillna(-1.0))
+    # the moment is part of a reference's key (-1: not stated): one source's values under two moments are two
+    # references, and only the run's own is judged
+    r = r[keep].assign(moment=moment[keep].fillna(-1.0))
     if not len(r):
         return pd.DataFrame(columns=out_cols)
     # a force the source gives without naming the side is compared with our mean of the two sides
     r = r.assign(facet=r["facet"].fillna("").replace("unspecified", ""), condition=r["condition"].fillna(""))
     key = cols + ["moment"]
-    unstated = r.groupby(key)["unstated"].any()
     wide = r.pivot_table(index=key, columns="statistic", values="value", aggfunc="first").reset_index()
     rows = []
     for w in wide.to_dict("records"):
         has = {k for k, v in w.items() if k not in key and np.isfinite(v)}
-        hidden = bool(unstated[tuple(w[c] for c in key)])
-        if hidden:  # the moment is not stated: shown beside ours, never judged
+        m = w["moment"]
+        hidden = not np.isclose(m, moment_nmm)
+        if hidden:  # another moment or none stated: shown beside ours, never judged
             has -= {"sd", "min", "max", "low", "high"}
         if not has:
             continue
@@ -107,7 +107,6 @@ def reference_intervals(refs: pd.DataFrame, moment_nmm: float, acceptance_sd: fl
             stat = sorted(has)[0]
             lo = hi = np.nan
             text = f"{w[stat]:g} ({stat})"
-            m = w["moment"]
             crit = (
                 "one value: reported, not judged"
                 if not hidden
