@@ -230,7 +230,7 @@ def test_serve_release_url_draws_a_model_fetched_by_its_browser_session(server, 
     try:
         wait_for_server(f"http://127.0.0.1:{port}/status", proc, log)
         server.clear_log()
-        drv = open_page(chrome(tmp_path / "downloads"), f"http://127.0.0.1:{port}/")
+        drv = open_page(chrome(tmp_path / "downloads"), f"http://127.0.0.1:{port}/", log)
         _show(drv, f"model_{MODEL:05d}")
         zip_ranges = [r for r in server.requests() if r.uri.endswith("cohort.zarr.zip")]
         assert zip_ranges and all(r.status == 206 for r in zip_ranges), zip_ranges

@@ -334,6 +334,26 @@ def test_origin_must_be_the_served_host():
         assert why in origin_refusal(origin, host, allowed)
 
 
+def test_a_session_ends_on_idle_on_a_left_tab_and_later_on_a_first_load():
+    from spinecohort.web.launcher import FIRST_LOAD_GRACE_S, RECONNECT_GRACE_S, Session, ending
+
+    def sess(quiet_s, n_ws, connected):
+        return Session("s", 1, 1, created=0.0, last_active=1000.0 - quiet_s, n_ws=n_ws, connected=connected)
+
+    idle = 1800.0
+    # an open websocket keeps a session until the idle timeout, whatever the graces
+    assert ending(sess(idle - 1, 1, True), 1000.0, idle) is None
+    assert ending(sess(idle + 1, 1, True), 1000.0, idle) == "idle for 1800 s"
+    # a closed tab: the reconnect grace (a page reload comes back well within it)
+    assert ending(sess(RECONNECT_GRACE_S - 1, 0, True), 1000.0, idle) is None
+    assert ending(sess(RECONNECT_GRACE_S + 1, 0, True), 1000.0, idle) == "its browser left"
+    # a page still loading its client code, quiet for longer than a reload's grace, is kept
+    assert ending(sess(RECONNECT_GRACE_S + 1, 0, False), 1000.0, idle) is None
+    assert ending(sess(FIRST_LOAD_GRACE_S + 1, 0, False), 1000.0, idle) == "its page never connected"
+    # both graces are bounded by a shorter idle timeout
+    assert ending(sess(11, 0, False), 1000.0, 10.0) == "idle for 10 s"
+
+
 def test_xlsx_of_the_table_reads_back_equal(data):
     from spinecohort.web.logic import xlsx_bytes
 

@@ -2,6 +2,7 @@
 session's ``test_run``): two browser sessions at once on one ``spinecohort serve``, what a user does, and
 what a hostile page or client does."""
 
+import contextlib
 import io
 import os
 import signal
@@ -66,6 +67,7 @@ def chrome(downloads: Path | None = None, size=(1600, 1000)):
         "--no-first-run",
     ):
         opts.add_argument(a)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})  # the console, for a failure's report
     if downloads is not None:
         opts.add_experimental_option(
             "prefs",
@@ -85,18 +87,33 @@ def chrome(downloads: Path | None = None, size=(1600, 1000)):
     return drv
 
 
-def open_page(drv, url):
+def open_page(drv, url, server_log: Path | None = None):
     drv.get(url)
     # the first page of a session forks its process and loads the client; with the suite's other test process
     # beside it on 2 cores (another Chromium among them) that took over 60 s once: a bound on a hang, not a speed
-    _wait(lambda: drv.find_elements("id", "match-count"), 180, "the page")
+    try:
+        _wait(lambda: drv.find_elements("id", "match-count"), 180, "the page")
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}\n{_page_report(drv, server_log)}") from None
     return drv
+
+
+def _page_report(drv, server_log: Path | None) -> str:
+    """What a timed-out page shows and what the server logged: the failure's own evidence."""
+    lines = [f"address: {drv.current_url}"]
+    with contextlib.suppress(Exception):
+        lines.append("page text: " + drv.find_element("tag name", "body").text[:500].replace("\n", " | "))
+    with contextlib.suppress(Exception):
+        lines += ["browser console:", *(f"  {e['level']} {e['message'][:300]}" for e in drv.get_log("browser"))]
+    if server_log is not None and server_log.exists():
+        lines += ["server log (last 40 lines):", *server_log.read_text().splitlines()[-40:]]
+    return "\n".join(lines)
 
 
 def _session(server, tmp_path_factory):
     drv = chrome(tmp_path_factory.mktemp("downloads"))
     try:
-        yield open_page(drv, server["url"])
+        yield open_page(drv, server["url"], server["log"])
     finally:
         drv.quit()
 
@@ -344,7 +361,7 @@ def test_two_sessions_have_their_own_filters_models_and_sliders(browser, browser
     assert a.execute_script("return window.trame.state.get('f_other')") == ""
     assert _text(b, "match-count").startswith(f"{n_b} of")
     # a new visitor starts from the defaults, not from A's or B's page
-    c = open_page(chrome(), server["url"])
+    c = open_page(chrome(), server["url"], server["log"])
     try:
         assert _text(c, "match-count").startswith(f"{n_all} of {n_all}")
         assert c.execute_script("return window.trame.state.get('model_input')") == ""

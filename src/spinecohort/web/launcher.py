@@ -39,6 +39,10 @@ log = logging.getLogger("spinecohort.serve")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 #: a session whose browser closed its websocket ends after this long unless it comes back (page reload)
 RECONNECT_GRACE_S = 30.0
+#: a session whose page has not opened its websocket yet ends this long after the page's last request: the
+#: first load fetches and compiles megabytes of client code, which on a slow link or a busy machine takes
+#: far longer than a reload
+FIRST_LOAD_GRACE_S = 180.0
 
 
 @dataclass
@@ -174,6 +178,20 @@ class Session:
     last_active: float
     n_ws: int = 0
     assigned: bool = False
+    connected: bool = False  # its page has opened a websocket at least once
+
+
+def ending(sess: Session, now: float, idle_timeout_s: float) -> str | None:
+    """Why the reaper ends ``sess`` at time ``now`` (s), or None: idle for ``idle_timeout_s``, or no websocket
+    for `RECONNECT_GRACE_S` once its page has connected (`FIRST_LOAD_GRACE_S` before), each counted from its
+    last request and bounded by the idle timeout."""
+    quiet_s = now - sess.last_active
+    if quiet_s > idle_timeout_s:
+        return f"idle for {idle_timeout_s:g} s"
+    grace_s = min(RECONNECT_GRACE_S if sess.connected else FIRST_LOAD_GRACE_S, idle_timeout_s)
+    if sess.n_ws == 0 and quiet_s > grace_s:
+        return "its browser left" if sess.connected else "its page never connected"
+    return None
 
 
 class Launcher:
@@ -236,14 +254,12 @@ class Launcher:
         while True:
             await asyncio.sleep(1.0)
             now = time.time()
-            grace = min(RECONNECT_GRACE_S, self.s.idle_timeout_s)
             for sess in list(self.sessions.values()):
-                if now - sess.last_active > self.s.idle_timeout_s:
-                    self._kill(sess, f"idle for {self.s.idle_timeout_s:g} s")
-                elif sess.n_ws == 0 and now - sess.last_active > grace:
-                    self._kill(sess, "its browser left")
-                elif not _alive(sess.pid):
-                    self._kill(sess, "its process stopped")
+                why = ending(sess, now, self.s.idle_timeout_s)
+                if why is None and not _alive(sess.pid):
+                    why = "its process stopped"
+                if why is not None:
+                    self._kill(sess, why)
 
     # ---------------------------------------------------------------------- HTTP
     def _host_ok(self, request) -> bool:
@@ -339,6 +355,7 @@ class Launcher:
         browser = web.WebSocketResponse(max_msg_size=0, compress=True)
         await browser.prepare(request)
         sess.n_ws += 1
+        sess.connected = True
         sess.last_active = time.time()
         try:
             async with self.http.ws_connect(f"ws://127.0.0.1:{sess.port}/ws", max_msg_size=0) as worker:
