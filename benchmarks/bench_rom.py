@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     from spinecohort.fe.materials import materials_from_config
     from spinecohort.figures.rom import validation_figure
     from spinecohort.mesh.template import HexTemplate
-    from spinecohort.rom.compare import all_effect, validate_from_config
+    from spinecohort.rom.compare import validate_from_config
     from spinecohort.rom.run import solve_model
 
     cfg = yaml.safe_load(Path(args.config).read_text())
@@ -71,7 +71,6 @@ def main(argv=None) -> int:
     table.to_csv(out / f"{model}.csv", index=False)
     val = validate_from_config(table, rom)
     val.to_csv(out / "validation.csv", index=False)
-    all_effect(table).to_csv(out / "all_effect.csv", index=False)
     validation_figure(val, out / "validation.png", title=model)
     runs = table.drop_duplicates(["mode", "unit", "variant", "load_case"])
     print("\nper ccx run (s, peak RSS MB):")

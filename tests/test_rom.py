@@ -935,8 +935,9 @@ def test_inverted_element_is_refused_before_the_solver(template, tmp_path, monke
 
 @pytest.fixture(scope="module")
 def rom_run(tmp_path_factory):
-    """The test DAG up to results/rom/validation.csv (one L3-L4 unit, six nonlinear load cases) plus the
-    deck of a non-mean store model (weights +3, +3, +3 SD)."""
+    """The test DAG up to results/rom/validation.csv (one L3-L4 unit, six nonlinear load cases) and
+    all_effect.csv (its extension again without the ALL), plus the deck of a non-mean store model (weights +3, +3,
+    +3 SD)."""
     if not HAS_CCX:
         pytest.skip("CalculiX 'ccx' not installed")
     work = tmp_path_factory.mktemp("rom_dag")
@@ -951,6 +952,7 @@ def rom_run(tmp_path_factory):
             str(work),
             "-j2",
             "results/rom/validation.csv",
+            "results/rom/all_effect.csv",
             "results/models/model_00026.inp",
         ],
         capture_output=True,
@@ -989,6 +991,20 @@ def test_rom_rules_solve_one_lumbar_unit_nonlinear(rom_run):
     assert set(val["motion"]) == {"flexion", "extension", "lateral_bending", "axial_rotation"}  # Niosi rows
     assert (r / "validation.png").stat().st_size > 10_000
     assert (r / "orderings.csv").exists()
+
+
+def test_without_the_all_the_unit_extends_more_by_what_the_all_carried(rom_run):
+    r = rom_run / "results" / "rom"
+    effect = pd.read_csv(r / "all_effect.csv")
+    table = pd.read_csv(r / "model_00013.csv")
+    intact = table.set_index("load_case").loc["extension", "rom_deg"]
+    assert effect[["mode", "segment"]].values.tolist() == [["unit", "L3-L4"]]
+    row = effect.iloc[0]
+    assert row["intact"] == pytest.approx(intact, abs=1e-9)  # the validation's own intact run, not a second one
+    # taking a ligament away cannot stiffen the unit, and the ALL is the ligament that extension stretches most
+    assert row["no_ALL"] > row["intact"] + 0.05 and row["increase_deg"] == pytest.approx(row["no_ALL"] - intact)
+    assert len(list((r / "all_effect" / "unit_L3L4").glob("rom_extension_noALL.inp"))) == 1
+    assert not list((r / "model_00013" / "unit_L3L4").glob("*noALL*"))  # the validation does not solve it
 
 
 REGRESSION = ROOT / "tests" / "data" / "rom_regression_model_00013.csv"
@@ -1110,6 +1126,38 @@ def test_mode_table_keeps_a_model_short_of_the_full_load_and_runs_each_mode_thro
     assert s.loc["model_00001", "solve_s"] == 7.0 and s["cpu_s"].sum() == 60.0
 
 
+def test_each_extraction_gets_the_variants_asked_for_and_no_other():
+    import yaml
+
+    from spinecohort.rom.run import Settings, variant_plan
+
+    # the default config: the T10-S1 lumbar model and three units, rib heads on the rib-bridged T2-T3 and T6-T7
+    cfg = Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["rom"])
+    plan = [
+        (mode, top + bottom, variant) for mode, top, bottom, variant, _ in variant_plan(cfg, ("intact", "rib_heads"))
+    ]
+    assert plan == [
+        ("lumbar", "T10S1", "intact"),
+        ("unit", "T2T3", "intact"),
+        ("unit", "T2T3", "rib_heads"),
+        ("unit", "T6T7", "intact"),
+        ("unit", "T6T7", "rib_heads"),
+        ("unit", "T10T11", "intact"),
+    ]
+    # the ALL's effect: every extraction once without the ALL, none intact; none without an ALL to take away
+    free = variant_plan(cfg, ("no_ALL",))
+    assert [(m, t + b, v) for m, t, b, v, _ in free] == [
+        ("lumbar", "T10S1", "no_ALL"),
+        ("unit", "T2T3", "no_ALL"),
+        ("unit", "T6T7", "no_ALL"),
+        ("unit", "T10T11", "no_ALL"),
+    ]
+    assert all(extra == {"include_all": False} for *_, extra in free)
+    assert variant_plan(cfg, ("no_ALL",), include_all=False) == []
+    with pytest.raises(ValueError, match="no_all"):
+        variant_plan(cfg, ("no_all",))
+
+
 def test_sensitivity_and_mode_figures_are_written(tmp_path):
     from spinecohort.figures.rom import rom_modes_figure, rom_sensitivity_figure
 
@@ -1127,6 +1175,10 @@ def test_sensitivity_and_mode_figures_are_written(tmp_path):
     # a comparison without a value in any variant (a case short of the full load) must not break the figure
     sens = pd.concat([sens, sens.assign(segment="T6-T7", change_deg=float("nan"))], ignore_index=True)
     assert rom_sensitivity_figure(sens, tmp_path / "s.png").stat().st_size > 5_000
+    # the sensitivity table's guide column: no variant guided (the real-bone run), and one guided
+    for guide in ([0.0] * len(sens), [0.0, 531.0, 0.0] * 2):
+        path = rom_sensitivity_figure(sens.assign(max_guide_moment_nmm=guide), tmp_path / "g.png")
+        assert path.stat().st_size > 5_000
     modes = pd.DataFrame(
         {
             "shape_mode": [1, 1, 1, 1, 1, 1] * 3,

@@ -242,7 +242,12 @@ class Layout:
 
     @property
     def rom_all_effect(self) -> str:
+        """The configured model's extension ROM with and without the ALL, per segment (rule rom_all_effect)."""
         return self.path("rom", "all_effect.csv")
+
+    @property
+    def rom_all_effect_dir(self) -> str:
+        return self.path("rom", "all_effect")
 
     @property
     def rom_validation_md(self) -> str:

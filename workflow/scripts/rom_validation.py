@@ -1,12 +1,12 @@
-# Adapter: the model's ROM against the in-vitro references (table + the seed's Figures 10-11 as one figure),
-# the physiological orderings of its lumbar segments and the ALL effect; its nucleus pressures, facet forces,
+# Adapter: the model's ROM against the in-vitro references (table + the seed's Figures 10-11 as one figure) and
+# the physiological orderings of its lumbar segments; its nucleus pressures, facet forces,
 # L1-L5 and same-geometry ROM against the packaged references (table, Markdown sections, figure).
 import pandas as pd
 
 from spinecohort.figures.rom import loads_figure, validation_figure
 from spinecohort.logs import to_file
 from spinecohort.rom import references
-from spinecohort.rom.compare import all_effect, orderings, validate_from_config, validation_markdown
+from spinecohort.rom.compare import orderings, validate_from_config, validation_markdown
 from spinecohort.rom.outcomes import outcomes, outcomes_markdown
 
 with to_file(snakemake.log[0]) as log:
@@ -27,7 +27,6 @@ with to_file(snakemake.log[0]) as log:
     more.to_csv(snakemake.output.outcomes, index=False)
     with open(snakemake.output.markdown, "w") as f:
         f.write(validation_markdown(val) + "\n" + outcomes_markdown(more, idp, facets))
-    all_effect(table).to_csv(snakemake.output.all_effect, index=False)
     order = orderings(table, mode="lumbar" if (table["mode"] == "lumbar").any() else "unit")
     order.to_csv(snakemake.output.orderings, index=False)
     validation_figure(val, snakemake.output.figure, title=snakemake.params.model)

@@ -153,7 +153,7 @@ def orderings(table: pd.DataFrame, segments: list[str] | None = None, mode: str 
 
 def all_effect(table: pd.DataFrame) -> pd.DataFrame:
     """Extension ROM with and without the ALL per segment (deg) and the increase without it."""
-    ext = table[table["load_case"] == "extension"]
+    ext = table[(table["load_case"] == "extension") & table["variant"].isin(["intact", "no_ALL"])]
     if "no_ALL" not in set(ext["variant"]):
         return ext.iloc[0:0]
     wide = ext.pivot_table(index=["mode", "unit", "segment"], columns="variant", values="rom_deg").reset_index()

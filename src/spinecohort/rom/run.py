@@ -9,6 +9,7 @@ import dataclasses
 import logging
 import re
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -320,7 +321,6 @@ class Settings:
     #: (flexion 92 %, lateral bending 85.6 %) after 20+ min of Newton cycling per case (docs/explanation/fe-model.md)
     lumbar_guided: bool = False
     units: tuple[tuple[str, str], ...] = ()  # functional units (upper, lower vertebra)
-    all_effect: bool = True
     threads: int = 2
     timeout_s: float = 7200.0
     #: solves after the first with the ROT NODE's *CLOAD corrected to exert the physical moment (`run_case`)
@@ -357,14 +357,13 @@ class Settings:
 
 
 def units_only(rom: dict, units) -> dict:
-    """The ``rom`` block solving the functional units `units` alone: no lumbar model, no ALL run, no rib heads
-    (the rib-free model the exported decks are); the solver settings unchanged."""
+    """The ``rom`` block solving the functional units `units` alone: no lumbar model, no rib heads (the rib-free
+    model the exported decks are); the solver settings unchanged."""
     return {
         **rom,
         "lumbar": {**rom["lumbar"], "enabled": False},
         "rib_heads": {**rom.get("rib_heads", {}), "enabled": False},
         "units": list(units),
-        "all_effect": False,
     }
 
 
@@ -380,6 +379,27 @@ def analyses(settings: Settings) -> list[tuple[str, str, str]]:
     return out
 
 
+def variant_plan(
+    settings: Settings, variants: Collection[str], include_all: bool = True
+) -> list[tuple[str, str, str, str, dict]]:
+    """(mode, top, bottom, variant, what differs from the intact model) of every ROM model `solve_model_loads`
+    builds: per analysis (`analyses`) the asked `variants` that apply to it ('no_ALL' needs an ALL and an
+    extension case, 'rib_heads' the settings' rib heads and a rib-bridged unit)."""
+    unknown = set(variants) - {"intact", "no_ALL", "rib_heads"}
+    if unknown:
+        raise ValueError(f"unknown ROM variant(s) {sorted(unknown)} (intact, no_ALL, rib_heads)")
+    plan = []
+    for mode, top, bottom in analyses(settings):
+        if "intact" in variants:
+            plan.append((mode, top, bottom, "intact", {}))
+        if "no_ALL" in variants and "extension" in settings.load_cases and include_all:
+            plan.append((mode, top, bottom, "no_ALL", {"include_all": False}))
+        ribbed = mode == "unit" and (top, bottom) in RIB_SEGMENTS
+        if "rib_heads" in variants and settings.rib_heads is not None and ribbed:
+            plan.append((mode, top, bottom, "rib_heads", {"ribs": settings.rib_heads}))
+    return plan
+
+
 def solve_model_loads(
     template: HexTemplate,
     points: np.ndarray,
@@ -388,9 +408,11 @@ def solve_model_loads(
     model_id: str,
     materials: FEMaterials | None = None,
     load_prints: bool = True,
+    variants: Collection[str] = ("intact", "rib_heads"),
 ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """ROM table of one model for every configured extraction and load case (plus extension without the
-    ALL if ``all_effect``), and the nucleus pressure of every disc and the facet force of every joint side per
+    """ROM table of one model for every configured extraction and load case of its `variants` ('intact'; 'rib_heads':
+    the rib-bridged units with their rib heads, if the settings enable them; 'no_ALL': extension without the ALL),
+    and the nucleus pressure of every disc and the facet force of every joint side per
     case (`spinecohort.rom.loads`; columns model, mode, variant, unit, then `CaseResult.idp` / `.facets`'s,
     load_case, load_fraction).  settings: `Settings` or the config's ``rom:`` block.  Decks, ccx logs and .dat
     files stay in ``workdir/<mode>_<top><bottom>/``.  Load cases run in parallel, ``settings.threads``
@@ -401,55 +423,36 @@ def solve_model_loads(
     cfg = settings if isinstance(settings, Settings) else Settings.from_config(settings)
     mats = DEFAULT_MATERIALS if materials is None else materials
     deck_kw = cfg.deck_kw()
+    kw = dict(
+        materials=mats,
+        hex_type=cfg.hex_type,
+        disc_hex_type=cfg.disc_hex_type,
+        nucleus_hex_type=cfg.nucleus_hex_type,
+        facets=mats.facets,
+    )
     jobs = []
-    for mode, top, bottom in analyses(cfg):
+    for mode, top, bottom, variant, extra in variant_plan(cfg, variants, mats.include_all):
         sub = Path(workdir) / f"{mode}_{top}{bottom}"
-        kw = dict(
-            materials=mats,
-            hex_type=cfg.hex_type,
-            disc_hex_type=cfg.disc_hex_type,
-            nucleus_hex_type=cfg.nucleus_hex_type,
-            facets=mats.facets,
+        label = {"intact": "", "no_ALL": " no ALL", "rib_heads": " with rib heads"}[variant]
+        heading = f"{model_id} ROM {mode} {top}-{bottom}{label}"
+        model = extract_rom_model(template, points, top, bottom, heading=heading, **kw, **extra)
+        msj = check_elements(model)
+        log.info(
+            "%s %s %s-%s (%s): %d nodes, %d elements, ligaments %s, min scaled Jacobian %.3f",
+            model_id,
+            mode,
+            top,
+            bottom,
+            variant,
+            len(model.fe.nodes),
+            model.fe.n_elements,
+            model.ligament_groups,
+            msj,
         )
-        # (variant, what differs from the intact model, heading suffix)
-        specs: list[tuple[str, dict, str]] = [("intact", {}, "")]
-        if cfg.all_effect and "extension" in cfg.load_cases and mats.include_all:
-            specs.append(("no_ALL", {"include_all": False}, " no ALL"))
-        if cfg.rib_heads is not None and mode == "unit" and (top, bottom) in RIB_SEGMENTS:
-            specs.append(("rib_heads", {"ribs": cfg.rib_heads}, " with rib heads"))
-        variants = [
-            (
-                variant,
-                extract_rom_model(
-                    template,
-                    points,
-                    top,
-                    bottom,
-                    heading=f"{model_id} ROM {mode} {top}-{bottom}{suffix}",
-                    **kw,
-                    **extra,
-                ),
-            )
-            for variant, extra, suffix in specs
-        ]
-        for variant, model in variants:
-            msj = check_elements(model)
-            log.info(
-                "%s %s %s-%s (%s): %d nodes, %d elements, ligaments %s, min scaled Jacobian %.3f",
-                model_id,
-                mode,
-                top,
-                bottom,
-                variant,
-                len(model.fe.nodes),
-                model.fe.n_elements,
-                model.ligament_groups,
-                msj,
-            )
-            cases = ["extension"] if variant == "no_ALL" else cfg.load_cases
-            suffix = {"intact": "", "no_ALL": "_noALL", "rib_heads": "_ribs"}[variant]
-            for case in cases:
-                jobs.append((mode, variant, model, case, sub, f"rom_{case}{suffix}"))
+        cases = ["extension"] if variant == "no_ALL" else cfg.load_cases
+        suffix = {"intact": "", "no_ALL": "_noALL", "rib_heads": "_ribs"}[variant]
+        for case in cases:
+            jobs.append((mode, variant, model, case, sub, f"rom_{case}{suffix}"))
 
     def run(job):
         mode, variant, model, case, sub, name = job
