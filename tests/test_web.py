@@ -334,6 +334,18 @@ def test_origin_must_be_the_served_host():
         assert why in origin_refusal(origin, host, allowed)
 
 
+def test_trame_reads_every_access_key_as_given():
+    from trame.app import get_server
+
+    from spinecohort.web.launcher import trame_argv
+
+    parser = get_server("spinecohort-key-test", client_type="vue3").cli
+    # keys as secrets.token_urlsafe makes them: one in 64 starts with '-', which a separate argv word loses
+    for key in ("-Zx9_kq", "--kq", "_a-b", "plain"):
+        args, _ = parser.parse_known_args(trame_argv(key))
+        assert args.authKey == key
+
+
 def test_a_session_ends_on_idle_on_a_left_tab_and_later_on_a_first_load():
     from spinecohort.web.launcher import FIRST_LOAD_GRACE_S, RECONNECT_GRACE_S, Session, ending
 

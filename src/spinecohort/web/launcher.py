@@ -107,6 +107,12 @@ def origin_refusal(origin: str | None, host_header: str | None, allowed: set[str
 
 
 # ----------------------------------------------------------------------------------------------- sessions
+def trame_argv(key: str) -> list[str]:
+    """trame's command-line options of a session.  The key is one token: a URL-safe random key starts with '-'
+    one time in 64, and as a separate word argparse would take it for an option and end the session."""
+    return [f"--authKey={key}"]
+
+
 def run_session(data: CohortData, port: int, key: str, max_zip: int, topology: dict, name: str) -> None:
     """One browser session: the platform's page as a trame server on 127.0.0.1:``port`` (blocking)."""
     from trame.app import get_server
@@ -114,7 +120,7 @@ def run_session(data: CohortData, port: int, key: str, max_zip: int, topology: d
     from spinecohort.web import guard
     from spinecohort.web.app import Platform
 
-    sys.argv = [sys.argv[0], "--authKey", key]  # trame reads its options (here: the access key) from argv
+    sys.argv = [sys.argv[0], *trame_argv(key)]  # trame reads its options (here: the access key) from argv
     server = get_server("spinecohort", client_type="vue3")
     page = Platform(data, server, max_zip=max_zip, topology=topology)
     guard.install(server, guard.state_rules(page), on_refuse=lambda why: page.error(PlatformError(f"refused: {why}")))
