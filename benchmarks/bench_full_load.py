@@ -3,7 +3,7 @@ them, solved by ccx at the full moment, per model and load case.
 
 Run: python benchmarks/bench_full_load.py [--config config/config.yaml] [--results results]
          [--models model_08403 model_00000 model_16806] [--cases flexion extension ...] [--moment-nm 7.5]
-         [--threads 2] [--timeout-s 1800] [--out /tmp/spinecohort_bench_full_load]
+         [--threads 2] [--timeout-s 1800] [--guided] [--out /tmp/spinecohort_bench_full_load]
 One ccx at a time.  Prints per model and load case: the load fraction reached (1 = the full moment), T1's
 rotation about the load's axis (degrees, the ROT NODE's rotation vector projected on the anatomical axis), the
 wall time (s) and the converged increments; a run stopped by --timeout-s keeps what it reached.  Writes the
@@ -81,6 +81,7 @@ def main(argv=None) -> int:
     ap.add_argument("--moment-nm", type=float, default=7.5)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--timeout-s", type=float, default=1800.0, help="per ccx run")
+    ap.add_argument("--guided", action="store_true", help="export --guided: the top turns about the load's axis only")
     ap.add_argument("--out", default="/tmp/spinecohort_bench_full_load")
     args = ap.parse_args(argv)
 
@@ -95,12 +96,14 @@ def main(argv=None) -> int:
         for case in args.cases:
             deck = out / f"{model}_{case}.inp"
             export = ["export", model, "--format", "inp", "--load", case, "--moment-nm", str(args.moment_nm)]
+            export += ["--guided"] if args.guided else []
             cli([*export, "--config", args.config, "--results", str(results), "--out", str(deck)])
             run = solve(deck, out / f"{model}_{case}", args.threads, args.timeout_s)
             axis = t1_axis(deck.read_text())
             row = {
                 "model": model,
                 "case": case,
+                "guided": args.guided,
                 "load_fraction": round(float(run["load_fraction"]), 4),
                 "t1_rotation_deg": round(float(np.degrees(run["rotation_rad"] @ axis)), 2),
                 "seconds": run["seconds"],

@@ -21,6 +21,17 @@ def test_input_errors_are_one_line_messages(tmp_path):
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_a_results_file_not_made_yet_is_named_in_one_line(tmp_path, capsys):
+    # export from a results folder the pipeline has not filled: the missing file, not a traceback
+    args = ["export", "model_00013", "--config", ".test/config/config.yaml", "--results", str(tmp_path / "none")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("spinecohort: error: ") and str(tmp_path / "none") in err and "snakemake -j2" in err
+    # --guided without --load: it has nothing to guide
+    assert main(["export", "model_00013", "--guided", "--results", str(tmp_path / "none")]) == 2
+    assert "--load" in capsys.readouterr().err
+
+
 def test_python_dash_m_spinecohort_is_the_console_script():
     """`python -m spinecohort` and `python -m spinecohort.cli` expose the same subcommands."""
     outs = [

@@ -220,6 +220,32 @@ def test_the_export_load_deck_takes_a_25_nmm_flexion_increment_in_one(template, 
     assert np.degrees(np.abs(r @ frame[:, 1:])).max() < 0.25 * flex  # nearly symmetric: little coupling
 
 
+def test_a_guided_export_load_deck_turns_its_top_about_the_load_axis_only(template, tmp_path):
+    # `export --load extension --guided`: two *EQUATIONs keep T1's rotation vector on the moment's axis (the
+    # validation's lumbar model is loaded so); its first 25 N.mm increment converges as the whole step
+    from spinecohort.fe.calculix import run_ccx
+    from spinecohort.fe.facets import vertebra_frame
+    from spinecohort.fe.pure_moment import model_load_text
+
+    fe = fe_model(template)
+    one = dict(initial_increment=1.0, max_increment=1.0, max_increments=1)
+    text = model_load_text(fe, template, "extension", "T1", 25.0, node_file=False, guided=True, **one)
+    # one generalised moment on the loaded rotation, where the free deck puts all three components
+    assert len(text.split("*CLOAD\n")[1].split("*")[0].splitlines()) == 1
+    assert "turning about the load's axis only" in text
+    deck = tmp_path / "ext.inp"
+    deck.write_text(text)
+    res = run_ccx(deck, tmp_path, threads=2, timeout_s=900)
+    rot = [b for b in res.node_prints if b.node_set.upper() == "ROTTOP"]
+    assert [b.time for b in rot] == [1.0]
+    r = rot[0].values[0]
+    axis = vertebra_frame(template, fe.nodes, "T1")[0][:, 0]  # extension: +x of T1's frame
+    ext = np.degrees(r @ axis)
+    assert 0.025 < ext < 2.4, ext  # as the free flexion increment above, by the same argument
+    # off the axis: what the deck prints (6 significant digits) leaves of the constraint
+    assert np.linalg.norm(np.cross(r, axis)) < 1e-5 * np.linalg.norm(r)
+
+
 def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(template):
     import re
 

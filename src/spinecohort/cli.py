@@ -104,6 +104,8 @@ def _export(args: argparse.Namespace) -> int:
     from spinecohort.mesh.template import HexTemplate
     from spinecohort.ssm.model import SSM
 
+    if args.guided and args.load is None:  # before any file is read
+        raise ValueError("--guided sets how the top of a --load deck turns: give --load too")
     if args.release and _is_url(args.release):  # the stored coordinates, read over HTTP; nothing downloaded
         from spinecohort.release.remote import RemoteRelease
 
@@ -141,6 +143,7 @@ def _export(args: argparse.Namespace) -> int:
         load=args.load,
         moment_nmm=1000.0 * args.moment_nm,
         top=args.top,
+        guided=args.guided,
     )
     print(f"model_{vm.model_id:05d} (weights {vm.weights.tolist()} SD) -> {out}; Jacobian check: {_scalars(vm.repair)}")
     return 0
@@ -437,6 +440,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     e.add_argument("--moment-nm", type=float, default=7.5, help="pure moment of --load in N.m (default 7.5)")
     e.add_argument("--top", default="T1", help="the loaded vertebra of --load (T1 ... L5, default T1)")
+    e.add_argument(
+        "--guided",
+        action="store_true",
+        help="(--load) the top turns about the load's axis only, as in the validation's lumbar model; the whole "
+        "spine's extension reaches the full moment guided, while free it stalls (docs/explanation/fe-model.md)",
+    )
     e.set_defaults(func=_export)
 
     v = sub.add_parser(
@@ -541,6 +550,13 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except ValueError as exc:  # input errors carry the file and the problem: print them, not a traceback
         print(f"spinecohort: error: {exc}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:  # a results file not made yet, or a wrong --results / --config
+        print(
+            f"spinecohort: error: {exc.filename or exc}: no such file (the pipeline's files are made by "
+            "`snakemake -j2`; --results and --config say where they are)",
+            file=sys.stderr,
+        )
         return 2
 
 

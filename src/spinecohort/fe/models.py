@@ -100,16 +100,20 @@ def write_model(
     load: str | None = None,
     moment_nmm: float = 7500.0,
     top: str = "T1",
+    guided: bool = False,
 ) -> Path:
     """Write ``stl`` (triangulated SSM shape), ``inp`` or ``vtu`` (hexahedral FE model).
 
     materials: `spinecohort.fe.materials.FEMaterials` (default: config/config.yaml's ``fe`` values).
     load: an ``inp`` with a pure-moment step (`spinecohort.fe.pure_moment.LOAD_CASES`: pelvis fixed, `moment_nmm`
-    N.mm on vertebra `top`), ready for ``ccx -i <job>``; None: the model data alone."""
+    N.mm on vertebra `top`; guided: `top` turns about the load's axis only), ready for ``ccx -i <job>``; None: the
+    model data alone."""
     from spinecohort.cohort.stl_io import write_stl
     from spinecohort.fe.export import check_deck, write_deck
     from spinecohort.fe.writers import write_vtu
 
+    if guided and load is None:
+        raise ValueError("--guided sets how the top of a --load deck turns: give --load too")
     if load is not None and fmt != "inp":
         raise ValueError(f"--load needs --format inp, not {fmt}")
     out = Path(out)
@@ -125,7 +129,7 @@ def write_model(
             from spinecohort.fe.pure_moment import arch_skin_free, model_load_text
 
             check_deck(arch_skin_free(fe), str(out))  # the model the load deck carries is one body
-            out.write_text(model_load_text(fe, template, load, top, moment_nmm))
+            out.write_text(model_load_text(fe, template, load, top, moment_nmm, guided=guided))
     elif fmt == "vtu":
         # the picture without the connector lines (not anatomy); elements keep their deck ids (connectors are last)
         fe = fe_model(

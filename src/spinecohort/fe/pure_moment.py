@@ -198,6 +198,7 @@ def model_load_text(
     top: str = "T1",
     moment_nmm: float = 7500.0,
     node_file: bool = True,
+    guided: bool = False,
     **step_kw,
 ) -> str:
     """A complete, runnable pure-moment deck of a whole exported model (`spinecohort.fe.export.fe_model`,
@@ -207,7 +208,9 @@ def model_load_text(
     Newton iterations to a stall) and loaded with `moment_nmm` (N.mm) about its anatomical axis of `case`, one
     NLGEOM step with the ROM's convergence controls (`step_kw`: those of `pure_moment_text`; default
     `MODEL_STEP_DEFAULTS`, first increment 25 N.mm, increments growing by `MODEL_TIME_INCREMENTATION`), ROT NODE
-    rotations (rad) printed to the .dat file and, if node_file, displacements to the .frd file.  Solve with
+    rotations (rad) printed to the .dat file and, if node_file, displacements to the .frd file.  guided: the top
+    turns about the load's axis only (two *EQUATIONs on its ROT NODE, `guide_equations`), as the ROM's lumbar
+    model: free, the whole spine's extension needs 17-18 Newton iterations an increment and stalls.  Solve with
     ``ccx -i <job>``."""
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
@@ -240,12 +243,20 @@ def model_load_text(
         **step_kw,
     }
     text = pure_moment_text(
-        fe.nodes, {top: rigid}, top, fe.node_sets[fixed_set(fe)], {}, sign * moment_nmm * frame[:, axis], **kw
+        fe.nodes,
+        {top: rigid},
+        top,
+        fe.node_sets[fixed_set(fe)],
+        {},
+        sign * moment_nmm * frame[:, axis],
+        guided=guided,
+        **kw,
     )
     if node_file:
         text = text.replace("*END STEP\n", "*NODE FILE\nU\n*END STEP\n")
+    how = ", turning about the load's axis only" if guided else ""
     head = (
-        f"** pure moment {case}: {moment_nmm / 1000:g} N.m on {top} (rigid body RB_{top}, moment on its ROT NODE), "
-        f"{fixed_set(fe)} fixed; solve: ccx -i <job>; ROTTOP's U1-U3 in the .dat = rotation (rad) about x, y, z\n"
+        f"** pure moment {case}: {moment_nmm / 1000:g} N.m on {top} (rigid body RB_{top}, moment on its ROT NODE"
+        f"{how}), {fixed_set(fe)} fixed; solve: ccx -i <job>; ROTTOP's U1-U3 in the .dat = rotation (rad) about x, y, z\n"
     )
     return model_to_inp_text(fe, provenance=f"load case {case}") + head + text
