@@ -99,13 +99,12 @@ def _ssm_info(args: argparse.Namespace) -> int:
 
 def _export(args: argparse.Namespace) -> int:
     from spinecohort.cohort.loading import load_cohort_npz
-    from spinecohort.fe.models import virtual_model, write_model
+    from spinecohort.fe.models import check_load_options, virtual_model, write_model
     from spinecohort.mesh.hex_ssm import HexSSM
     from spinecohort.mesh.template import HexTemplate
     from spinecohort.ssm.model import SSM
 
-    if args.guided and args.load is None:  # before any file is read
-        raise ValueError("--guided sets how the top of a --load deck turns: give --load too")
+    check_load_options(args.format, args.load, args.guided)  # before any file is read
     if args.release and _is_url(args.release):  # the stored coordinates, read over HTTP; nothing downloaded
         from spinecohort.release.remote import RemoteRelease
 

@@ -89,6 +89,15 @@ def virtual_model(
     return VirtualModel(i, w, tri, pts, report)
 
 
+def check_load_options(fmt: str, load: str | None, guided: bool) -> None:
+    """ValueError unless `load` (a pure-moment step) and `guided` fit the format: a load only in an ``inp``, and
+    guided only with a load."""
+    if guided and load is None:
+        raise ValueError("--guided sets how the top of a --load deck turns: give --load too")
+    if load is not None and fmt != "inp":
+        raise ValueError(f"--load needs --format inp, not {fmt}")
+
+
 def write_model(
     vm: VirtualModel,
     fmt: str,
@@ -112,10 +121,7 @@ def write_model(
     from spinecohort.fe.export import check_deck, write_deck
     from spinecohort.fe.writers import write_vtu
 
-    if guided and load is None:
-        raise ValueError("--guided sets how the top of a --load deck turns: give --load too")
-    if load is not None and fmt != "inp":
-        raise ValueError(f"--load needs --format inp, not {fmt}")
+    check_load_options(fmt, load, guided)
     out = Path(out)
     name = f"model_{vm.model_id:05d}"
     heading = f"spinecohort {name}, weights (SD) {np.round(vm.weights, 3).tolist()}"

@@ -257,6 +257,7 @@ def model_load_text(
     how = ", turning about the load's axis only" if guided else ""
     head = (
         f"** pure moment {case}: {moment_nmm / 1000:g} N.m on {top} (rigid body RB_{top}, moment on its ROT NODE"
-        f"{how}), {fixed_set(fe)} fixed; solve: ccx -i <job>; ROTTOP's U1-U3 in the .dat = rotation (rad) about x, y, z\n"
+        f"{how}), {fixed_set(fe)} fixed; solve: ccx -i <job>; "
+        "ROTTOP's U1-U3 in the .dat = rotation (rad) about x, y, z\n"
     )
     return model_to_inp_text(fe, provenance=f"load case {case}") + head + text

@@ -108,9 +108,7 @@ def rom_sensitivity_figure(sens: pd.DataFrame, path: str | Path) -> Path:
     d = sens[sens["parameter"] != "baseline"].copy()
     d["row"] = d["parameter"] + " " + d["level"] + " (" + d["value"].map("{:g}".format) + ")"
     if "max_guide_moment_nmm" in d:  # a variant with a guided case: its values include a constrained one
-        guided = d["max_guide_moment_nmm"] > 0
-        note = d["max_guide_moment_nmm"].map(lambda v: f" [guided {v:.0f} N.mm]" if v > 0 else "")
-        d["row"] = d["row"] + note.where(guided, "")
+        d["row"] += d["max_guide_moment_nmm"].map(lambda v: f" [guided {v:.0f} N.mm]" if v > 0 else "")
     d["col"] = d["segment"] + " " + d["motion"].str.replace("_", " ") + " (" + d["side"] + ")"
     order_cols = list(dict.fromkeys(d["col"]))
     # a comparison without value in every variant (a case short of the full load) stays as an empty column

@@ -379,15 +379,19 @@ def analyses(settings: Settings) -> list[tuple[str, str, str]]:
     return out
 
 
+#: the ROM models' variants: (heading suffix, ccx job suffix) of each
+VARIANTS = {"intact": ("", ""), "no_ALL": (" no ALL", "_noALL"), "rib_heads": (" with rib heads", "_ribs")}
+
+
 def variant_plan(
     settings: Settings, variants: Collection[str], include_all: bool = True
 ) -> list[tuple[str, str, str, str, dict]]:
     """(mode, top, bottom, variant, what differs from the intact model) of every ROM model `solve_model_loads`
     builds: per analysis (`analyses`) the asked `variants` that apply to it ('no_ALL' needs an ALL and an
     extension case, 'rib_heads' the settings' rib heads and a rib-bridged unit)."""
-    unknown = set(variants) - {"intact", "no_ALL", "rib_heads"}
+    unknown = set(variants) - set(VARIANTS)
     if unknown:
-        raise ValueError(f"unknown ROM variant(s) {sorted(unknown)} (intact, no_ALL, rib_heads)")
+        raise ValueError(f"unknown ROM variant(s) {sorted(unknown)} ({', '.join(VARIANTS)})")
     plan = []
     for mode, top, bottom in analyses(settings):
         if "intact" in variants:
@@ -433,7 +437,7 @@ def solve_model_loads(
     jobs = []
     for mode, top, bottom, variant, extra in variant_plan(cfg, variants, mats.include_all):
         sub = Path(workdir) / f"{mode}_{top}{bottom}"
-        label = {"intact": "", "no_ALL": " no ALL", "rib_heads": " with rib heads"}[variant]
+        label, suffix = VARIANTS[variant]
         heading = f"{model_id} ROM {mode} {top}-{bottom}{label}"
         model = extract_rom_model(template, points, top, bottom, heading=heading, **kw, **extra)
         msj = check_elements(model)
@@ -450,7 +454,6 @@ def solve_model_loads(
             msj,
         )
         cases = ["extension"] if variant == "no_ALL" else cfg.load_cases
-        suffix = {"intact": "", "no_ALL": "_noALL", "rib_heads": "_ribs"}[variant]
         for case in cases:
             jobs.append((mode, variant, model, case, sub, f"rom_{case}{suffix}"))
 
