@@ -9,6 +9,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -57,3 +58,15 @@ def test_run(tmp_path_factory):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return work
+
+
+@pytest.fixture(scope="session")
+def real_template():
+    """The coarse hex template on the labeled reference (the real cohort's shape and numbering), with the facet
+    surfaces, the labeled pedicles and ALL / PLL / LF / CL bundles of the default config."""
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import first_use_reference
+
+    ref = first_use_reference(load_reference())
+    res = replace(TEMPLATE_RESOLUTIONS["coarse"], cep_diameter_fraction=0.7)
+    return build_template(ref.vertices, ref.faces, ref.landmarks, res, fibres={"ALL": 3, "PLL": 3, "LF": 3, "CL": 4})

@@ -88,19 +88,6 @@ def test_bundle_sampling_spreads_the_fibres_and_matches_their_ends():
     assert sorted(distinct_nearest(np.array([0.0, 1.0, 2.0, 9.0]), np.array([1.0, 1.1, 0.9]))) == [0, 1, 2]
 
 
-@pytest.fixture(scope="module")
-def real_template():
-    """The coarse hex template on the labeled reference (the real cohort's shape and numbering), with the
-    facet surfaces and ALL / PLL / LF / CL bundles of the default config."""
-    from spinecohort.anatomy.reference import load_reference
-    from spinecohort.cohort.real import first_use_reference
-    from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
-
-    ref = first_use_reference(load_reference())
-    res = replace(TEMPLATE_RESOLUTIONS["coarse"], cep_diameter_fraction=0.7)
-    return build_template(ref.vertices, ref.faces, ref.landmarks, res, fibres={"ALL": 3, "PLL": 3, "LF": 3, "CL": 4})
-
-
 def test_every_real_joint_pushes_from_its_superior_onto_its_inferior_facet(real_template):
     from spinecohort.fe.connections import arch_owner
     from spinecohort.fe.facets import _joints

@@ -3,8 +3,6 @@ the stops of the real-bone reference (the real cohort's shape and numbering) and
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
@@ -35,18 +33,6 @@ def test_a_ray_meets_the_first_triangle_ahead_at_its_distance():
     assert ray_distances(np.zeros((1, 3)), slant, 10.0 * tri * [1, 1, 0.1])[0] == pytest.approx(6.25)
     assert np.isinf(ray_distances(np.zeros((1, 3)), -down, tri)[0])  # behind the origin: never met
     assert np.isinf(ray_distances(np.zeros((1, 3)), down, np.zeros((0, 3, 3)))[0])
-
-
-@pytest.fixture(scope="module")
-def real_template():
-    """The coarse hex template on the labeled reference, as `tests/test_facet_geometry.py` builds it."""
-    from spinecohort.anatomy.reference import load_reference
-    from spinecohort.cohort.real import first_use_reference
-    from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
-
-    ref = first_use_reference(load_reference())
-    res = replace(TEMPLATE_RESOLUTIONS["coarse"], cep_diameter_fraction=0.7)
-    return build_template(ref.vertices, ref.faces, ref.landmarks, res, fibres={"ALL": 3, "PLL": 3, "LF": 3, "CL": 4})
 
 
 def test_lumbar_tips_meet_the_bone_below_within_a_few_mm_and_the_thoracolumbar_ones_do_not(real_template):

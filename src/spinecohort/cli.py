@@ -293,7 +293,7 @@ def _personalize(args: argparse.Namespace) -> int:
         t = targets.get(p, float("nan"))
         print(f"{p:<12}{t:>10.3f}{res.achieved[p]:>10.3f}{res.achieved[p] - t:>9.3f}  {UNITS.get(p, '')}")
     if args.out:
-        from spinecohort.fe.export import fe_model, write_deck
+        from spinecohort.fe.export import NOT_ANATOMY, fe_model, write_deck
         from spinecohort.fe.materials import materials_from_config
         from spinecohort.fe.writers import write_vtu
         from spinecohort.mesh.hex_ssm import HexSSM
@@ -317,10 +317,9 @@ def _personalize(args: argparse.Namespace) -> int:
             hex_type=cfg["template"]["hex_type"],
             heading=heading,
             materials=materials_from_config(cfg.get("fe")),
-            connectors=args.out.suffix != ".vtu",  # a picture: no connector lines
         )
         if args.out.suffix == ".vtu":
-            write_vtu(fe, args.out)
+            write_vtu(fe, args.out, leave_out=NOT_ANATOMY)  # a picture: no connector lines
         elif args.out.suffix == ".inp":
             write_deck(fe, args.out, provenance=heading)
         else:

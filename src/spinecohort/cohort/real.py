@@ -35,6 +35,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from spinecohort.anatomy.labels import REGIONS
 from spinecohort.anatomy.reference import Reference, load_reference
 from spinecohort.cohort.alignment import (
     CRITERIA,
@@ -408,16 +409,24 @@ def morton_codes(points_mm: np.ndarray, bits: int = 10) -> np.ndarray:
 
 
 def reference_sites(ref: Reference) -> dict[str, np.ndarray]:
-    """The reference's facet articular surfaces and ligament insertion sites as `Landmarks.sites`
+    """The reference's facet articular surfaces, ligament insertion sites and labeled pedicles
+    (``pedicle_<side>/<level>``, the hex pedicles' geometry, `spinecohort.fe.pedicles`) as `Landmarks.sites`
     (``"<set>/<level>"`` -> vertex indices): every model of the real cohort has the reference's vertex numbering,
     so these sets name the same anatomy on each of them."""
-    return {
+    out = {
         f"{name}/{lv}": np.asarray(v, dtype=np.int64)
         for name, per in ref.sets.items()
         if name.startswith(("facet_surface_", "site_", "anchor_"))
         for lv, v in per.items()
         if len(v)
     }
+    for side in ("left", "right"):
+        label = REGIONS.index(f"pedicle_{side}")
+        for i, lv in enumerate(LEVELS):
+            v = np.flatnonzero((ref.level == i) & (ref.region == label))
+            if len(v):
+                out[f"pedicle_{side}/{lv}"] = v.astype(np.int64)
+    return out
 
 
 def first_use_reference(ref: Reference) -> Reference:

@@ -1,6 +1,6 @@
 """Connectors that make a spine model one mechanical body: stiff linear springs (SPRINGA) joining each
-posterior arch to its vertebral body, the sacrum to the S1 plate, the pelvis to the sacrum and each femoral
-head to the pelvis.
+posterior arch to its pedicles' end faces (`spinecohort.fe.pedicles`; without pedicles, to its body's posterior
+wall), the sacrum to the S1 plate, the pelvis to the sacrum and each femoral head to the pelvis.
 
 Why connectors: in the template the vertebral bodies and discs are one conforming hex column, but the
 posterior elements, sacrum, pelvis and femoral heads are S3 skins of the triangulated shape (each made of
@@ -148,7 +148,9 @@ def drop_short(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return pairs[length >= MIN_SPRING_MM]
 
 
-def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.ndarray]:
+def model_connectors(
+    template: HexTemplate, points: np.ndarray, bases: dict[str, np.ndarray] | None = None
+) -> dict[str, np.ndarray]:
     """Connector springs of the whole model as {element set name: (P, 2) template node pairs}:
 
     * ``CONN_ARCH_<lvl>``: the posterior skin of each vertebra to its body's posterior wall; attachment
@@ -158,8 +160,11 @@ def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.
     * ``CONN_PELVIS``: each piece of the pelvis to its nearest sacrum nodes (sacroiliac joints);
     * ``CONN_FH_L`` / ``CONN_FH_R``: each femoral head to its nearest pelvis nodes (hip joints).
 
+    bases: level -> the node ids an arch hangs on instead of its posterior wall (the pedicles' end faces,
+    `spinecohort.fe.pedicles`), with `points` holding their coordinates (ids beyond the template's nodes).
     The pairs depend on the coordinates only through the choice of attachment and target nodes, which is
     made on `points` (use the template's own nodes so every model of the cohort has the same deck)."""
+    bases = bases or {}
     points = np.asarray(points, dtype=np.float64)
     lig_ends = np.unique(template.ligaments)
     out: dict[str, np.ndarray] = {}
@@ -171,7 +176,7 @@ def model_connectors(template: HexTemplate, points: np.ndarray) -> dict[str, np.
         spread = [spread_nodes(points, p, centre) for p in skin_pieces(template, f"POST_{v}")]
         anchors = np.intersect1d(arch_nodes(template, v), lig_ends)
         attach = np.concatenate([anchors, np.setdiff1d(np.concatenate(spread), anchors)])
-        out[f"CONN_ARCH_{v}"] = drop_short(points, truss_pairs(attach, wall))
+        out[f"CONN_ARCH_{v}"] = drop_short(points, truss_pairs(attach, bases.get(v, wall)))
     s1_plate = np.arange(len(template.grid.nodes))
     if "SACRUM" in template.elsets:
         centre = points[s1_plate].mean(0)

@@ -206,6 +206,7 @@ def fe_model(
     """
     from spinecohort.fe.connections import CONNECTOR_TABLE, base_nodes, model_connectors, truss_pairs
     from spinecohort.fe.facets import facet_nodes, facet_pairs
+    from spinecohort.fe.pedicles import add_block, model_pedicles
     from spinecohort.fe.quadratic import quadratic_blocks
 
     mats = DEFAULT_MATERIALS if materials is None else materials
@@ -240,15 +241,24 @@ def fe_model(
                 continue
             idx = np.sort(pos_of_hex[idx])
         elsets[name] = offset[kind] + np.asarray(idx)
-    conn_sets = model_connectors(template, template.nodes) if connectors else {}
     fn = None
     if connectors and mats.facets is not None and "LIG_CL" in template.elsets:
-        # facet joints: new nodes after the template's (ids N+1..), each hung on its vertebra's posterior wall
-        # (S1's: on the S1 plate) by the arch truss (coordinate-free: the same springs in every model of the cohort)
         fn = facet_nodes(template, pts, facet_pairs(template), mats.facets)
+    # the pedicles' nodes after the facet nodes; each arch hangs on its pedicles' end faces (`fe.pedicles`)
+    n_first_ped = len(pts) + (len(fn.points) if fn is not None else 0)
+    peds = model_pedicles(template, pts, mats.pedicle_layers, n_first_ped)
+    bases, base_points = {}, template.nodes
+    if peds is not None:
+        bases = peds[0].ends
+        base_points = np.zeros((n_first_ped + len(peds[1].points), 3))
+        base_points[: len(pts)], base_points[n_first_ped:] = template.nodes, peds[1].points
+    conn_sets = model_connectors(template, base_points, bases) if connectors else {}
+    if fn is not None:
+        # facet joints: new nodes after the template's (ids N+1..), each hung with its arch (its pedicles' ends, else
+        # its posterior wall; S1's: the S1 plate) by the arch truss (coordinate-free: the same springs in every model)
         n = len(pts)
         for v, ix in fn.tied.items():
-            conn_sets[f"CONN_FACET_{v}"] = truss_pairs(n + ix, base_nodes(template, v))
+            conn_sets[f"CONN_FACET_{v}"] = truss_pairs(n + ix, bases.get(v, base_nodes(template, v)))
     if conn_sets:
         first = offset["lig"] + int(lig_keep.sum())
         blocks["CONNECTORS"] = ("SPRINGA", np.concatenate(list(conn_sets.values())))
@@ -290,6 +300,9 @@ def fe_model(
     if fn is not None:
         sections += fn.section_list()
         pts = np.concatenate([pts, fn.points])
+    if peds is not None:
+        add_block(blocks, elsets, sections, peds[0].hexes, peds[0].elsets)
+        pts = np.concatenate([pts, peds[0].points])
     # quadratic hexes' midside nodes after every other node, tied to their linear neighbours (`fe.quadratic`)
     pts, blocks, ties = quadratic_blocks(pts, blocks)
     embedded = None
@@ -310,6 +323,10 @@ def fe_model(
         midside_ties=ties,
         embedded_ties=embedded,
     )
+
+
+#: element blocks a picture of a deck leaves out (`write_vtu`'s leave_out): connector and facet-strut lines
+NOT_ANATOMY = ("CONNECTORS", "FACETS")
 
 
 def fixed_set(model: FEModel) -> str:

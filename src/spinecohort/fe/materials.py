@@ -82,6 +82,9 @@ class FEMaterials:
     #: (`spinecohort.fe.ligament_curves`; config ``fe.lumbar_ligaments``, default Remus et al. 2021's L1-S1)
     segment_ligaments: dict = field(default_factory=lambda: load_segment_ligaments("remus2021"))
     facets: FacetContact | None = FacetContact()  # facet-joint gaps (None: none), `spinecohort.fe.facets`
+    #: hexes along each pedicle (`spinecohort.fe.pedicles`); None: no pedicles, the arches hang on the posterior wall
+    pedicle_layers: int | None = 3
+    posterior_bone: tuple[float, float] = (3500.0, 0.25)  # E MPa, nu of the pedicles (posterior bony elements)
 
     def __post_init__(self):
         if (self.fibre_k1_inner_mpa is None) != (self.fibre_k1_outer_mpa is None):
@@ -122,6 +125,8 @@ class FEMaterials:
 FIBRE_MODELS = ("springs", "elastic_fiber")
 #: the annulus ground substance's material with spring fibres (Neo-Hooke)
 ANNULUS_GROUND = "AF"
+#: the pedicles' material (posterior bony elements, `spinecohort.fe.pedicles`)
+POSTERIOR_BONE = "POSTERIOR"
 
 #: bilinear ligaments (E1, E2 MPa, transition strain, area mm^2): moduli of Goel et al. 1995 via Kim et al. 2013;
 #: areas calibrated inside the published range (config/config.yaml, docs/explanation/fe-model.md): ALL and CL Goel's, the others
@@ -211,6 +216,11 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         # absent (a release made before the per-segment curves) or null: the groups' laws at every segment
         segment_ligaments=load_segment_ligaments(fe["lumbar_ligaments"]) if fe.get("lumbar_ligaments") else {},
         facets=FacetContact.from_config(fe.get("facets")),  # None: a release made before facets were exported
+        # absent: a release made before the pedicles were hexes (its arches hang on the posterior wall)
+        pedicle_layers=int(fe["pedicles"]["layers"]) if fe.get("pedicles", {}).get("enabled") else None,
+        posterior_bone=(
+            (float(fe["pedicles"]["E_mpa"]), float(fe["pedicles"]["nu"])) if fe.get("pedicles") else (3500.0, 0.25)
+        ),
     )
 
 
@@ -273,12 +283,13 @@ def ligament_table(
 
 
 def material_cards(mats: FEMaterials, template: HexTemplate | None = None) -> list:
-    """The named materials every deck carries: CORTICAL, CANCELLOUS, CEP, NP, ELASTIC_FIBER_AF (with a k1
+    """The named materials every deck carries: CORTICAL, CANCELLOUS, CEP, POSTERIOR (the pedicles), NP, ELASTIC_FIBER_AF (with a k1
     gradient instead one ELASTIC_FIBER_AF_R<k> per annulus ring of `template`, `annulus_ring_k1`)."""
     cards = [
         LinearElastic("CORTICAL", *mats.cortical),
         LinearElastic("CANCELLOUS", *mats.cancellous),
         LinearElastic("CEP", *mats.cep),
+        LinearElastic(POSTERIOR_BONE, *mats.posterior_bone),
         MooneyRivlin("NP", *mats.nucleus),
     ]
     ground = NeoHooke(ANNULUS_GROUND, mats.annulus_c10_mpa, mats.annulus_d1_per_mpa, mats.annulus_volumetric)

@@ -118,7 +118,7 @@ def write_model(
     N.mm on vertebra `top`; guided: `top` turns about the load's axis only), ready for ``ccx -i <job>``; None: the
     model data alone."""
     from spinecohort.cohort.stl_io import write_stl
-    from spinecohort.fe.export import check_deck, write_deck
+    from spinecohort.fe.export import NOT_ANATOMY, check_deck, write_deck
     from spinecohort.fe.writers import write_vtu
 
     check_load_options(fmt, load, guided)
@@ -137,11 +137,9 @@ def write_model(
             check_deck(arch_skin_free(fe), str(out))  # the model the load deck carries is one body
             out.write_text(model_load_text(fe, template, load, top, moment_nmm, guided=guided))
     elif fmt == "vtu":
-        # the picture without the connector lines (not anatomy); elements keep their deck ids (connectors are last)
-        fe = fe_model(
-            template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials, connectors=False
-        )
-        write_vtu(fe, out)
+        # the deck's model without the connector and facet-strut lines (not anatomy): every element keeps its deck id
+        fe = fe_model(template, vm.hex_points, hex_type=hex_type, heading=heading, materials=materials)
+        write_vtu(fe, out, leave_out=NOT_ANATOMY)
     else:
         raise ValueError(f"unknown format '{fmt}' (inp | stl | vtu)")
     return out

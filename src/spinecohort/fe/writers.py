@@ -178,19 +178,22 @@ def write_inp(model: FEModel, path: str | Path, decimals: int = 6, provenance: s
     return write_text_atomic(path, text)
 
 
-def write_vtu(model: FEModel, path: str | Path) -> Path:
+def write_vtu(model: FEModel, path: str | Path, leave_out: tuple[str, ...] = ()) -> Path:
     """Write the model as .vtu via meshio: one cell block per element block (hexes stay VTK_HEXAHEDRON,
-    same node order), cell data `element_id` (the deck's 1-based id) and `block` (block number)."""
+    same node order), cell data `element_id` (the deck's 1-based id) and `block` (block number); the blocks named
+    in `leave_out` (e.g. connector lines, which are not anatomy) are not drawn, and every other element keeps its
+    deck id."""
     import meshio
 
     validate_model(model)
     cells, element_id, block = [], [], []
     first = 1
-    for i, (_name, (etype, conn)) in enumerate(model.element_blocks.items()):
+    for i, (name, (etype, conn)) in enumerate(model.element_blocks.items()):
         conn = np.asarray(conn, dtype=np.int64)
-        cells.append((MESHIO_CELL_TYPE[etype], conn))
-        element_id.append(np.arange(first, first + len(conn), dtype=np.int64))
-        block.append(np.full(len(conn), i, dtype=np.int32))
+        if name not in leave_out:
+            cells.append((MESHIO_CELL_TYPE[etype], conn))
+            element_id.append(np.arange(first, first + len(conn), dtype=np.int64))
+            block.append(np.full(len(conn), i, dtype=np.int32))
         first += len(conn)
     mesh = meshio.Mesh(
         np.asarray(model.nodes, dtype=np.float64), cells, cell_data={"element_id": element_id, "block": block}

@@ -40,6 +40,8 @@ FACET_SURFACES = (
     "facet_surface_inf_left",
     "facet_surface_inf_right",
 )
+#: the labeled pedicles carried to the template (`spinecohort.fe.pedicles`)
+PEDICLES = ("pedicle_left", "pedicle_right")
 
 
 #: the sacrum's anchors (``Landmarks.sites`` ``anchor_<name>/S1``, one vertex each) that L5-S1's posterior
@@ -148,11 +150,17 @@ def site_vertices(sites: dict, group: str, where: str, level: str) -> np.ndarray
 
 
 def template_sites(sites: dict[str, np.ndarray], remap: np.ndarray) -> dict[str, np.ndarray]:
-    """The facet articular surfaces of `sites` (`Landmarks.sites`) as template node ids (`remap`: vertex ->
-    template node, -1 where none): the facet contacts are fitted on them (`spinecohort.fe.facet_geometry`)."""
+    """The facet articular surfaces and the labeled pedicles of `sites` (`Landmarks.sites`) as template node ids
+    (`remap`: vertex -> template node, -1 where none): the facet contacts are fitted on the surfaces
+    (`spinecohort.fe.facet_geometry`), the hex pedicles on the pedicles (`spinecohort.fe.pedicles`)."""
     out = {}
     for key, v in sites.items():
-        if key.split("/")[0] in FACET_SURFACES:
+        name = key.split("/")[0]
+        if name in PEDICLES:  # the pedicle's root inside the body's labels is the hex body's; its skin is the rest
+            nodes = remap[v][remap[v] >= 0]
+            if len(nodes):
+                out[key] = np.sort(nodes)
+        elif name in FACET_SURFACES:
             nodes = remap[v]
             if np.any(nodes < 0):
                 raise ValueError(f"landmark site {key} has vertices on no surface part of the template")

@@ -11,10 +11,11 @@ element per joint.  Elements: C3D8 for bone and cartilage endplates, C3D8R for t
 C3D8 locks the nearly incompressible nucleus in bending).
 The posterior elements are S3 skins in the template and share no node with the hex bodies; bone is ~10^4
 times stiffer than disc and ligament, so each posterior arch is modelled as rigid: a stiff truss joins its
-ligament/facet anchor nodes to each other and to the body's posterior cortical-shell nodes between its
-endplates (the pedicle base) -- the truss of `spinecohort.fe.connections`, the one the exported deck carries
-(there with the skins' own attachment nodes added); the skin elements themselves carry nothing here and are
-left out.  The sacrum and
+ligament/facet anchor nodes to each other and to the end faces of its two hex pedicles (`spinecohort.fe.pedicles`,
+bone from the body's cortical wall to the articular pillars; a cohort without labeled pedicles: to the body's
+posterior cortical-shell nodes between its endplates) -- the truss of `spinecohort.fe.connections`, the one the
+exported deck carries (there with the skins' own attachment nodes added); the skin elements themselves carry
+nothing here and are left out.  The sacrum and
 pelvis are fixed in vitro and here: a lumbar model fixes the S1 plate (the bottom node layer of the column);
 a functional unit fixes its whole lower vertebra (potting).  The moment acts on the top vertebra, potted
 too: one *RIGID BODY of its body and arch anchors (`spinecohort.rom.deck`).
@@ -59,6 +60,7 @@ from spinecohort.fe.materials import (
     material_cards,
     spring_table,
 )
+from spinecohort.fe.pedicles import add_block, model_pedicles
 from spinecohort.fe.potting import potted_plate
 from spinecohort.fe.quadratic import quadratic_blocks, ties_on
 from spinecohort.mesh.template import LIGAMENT_GROUPS, HexTemplate, fit_endplate
@@ -203,6 +205,17 @@ def extract_rom_model(
         rib_conn = np.stack([first_new + rn.springs[:, 0], new_of[rn.springs[:, 1]]], 1)
         source = np.concatenate([source, np.full(len(rn.points), -1)])
 
+    # the pedicles of the kept vertebrae (`spinecohort.fe.pedicles`): bone from each body to its arch's base
+    n_tpl = len(template.nodes)
+    peds = model_pedicles(template, points, mats.pedicle_layers, n_tpl, tuple(bones))
+    first_ped = len(pts)
+    if peds is not None:
+        pts = np.concatenate([pts, peds[0].points])
+        source = np.concatenate([source, np.full(len(peds[0].points), -1)])
+
+    def ped_ids(ids: np.ndarray) -> np.ndarray:  # pedicle node ids (template ids, new from n_tpl) -> submodel ids
+        return np.where(ids < n_tpl, new_of[np.minimum(ids, n_tpl - 1)], first_ped + ids - n_tpl)
+
     # disc soft-tissue hexes (annulus, nucleus) last, in their own blocks when their element types differ
     hex_ids, tpl_blocks = hex_blocks(template, hex_ids, hex_type, disc_hex_type, nucleus_hex_type)
     blocks = {name: (etype, new_of[conn]) for name, (etype, conn) in tpl_blocks.items()}
@@ -264,9 +277,13 @@ def extract_rom_model(
         inf, sup = inf_l * n2 + np.arange(n2), sup_l * n2 + np.arange(n2)
         endplates[v] = new_of[np.concatenate([inf, sup])]
         frames[v] = vertebra_frame(template, points, v)[0]
-        wall = new_of[posterior_wall(template, v)]
         a = np.concatenate([new_of[anchors[v]], extra_tied[v]])
-        tied = np.concatenate([wall, a])
+        if peds is not None and v in peds[0].ends:  # the arch hangs on its pedicles' end faces
+            wall = ped_ids(peds[0].ends[v])
+            tied = np.concatenate([ped_ids(peds[0].nodes_of[v]), a])
+        else:
+            wall = new_of[posterior_wall(template, v)]
+            tied = np.concatenate([wall, a])
         # the loaded top and a unit's fixed bottom vertebra are potted in vitro: the whole vertebra (body
         # and arch) is rigid.  With only its superior endplate rigid, ccx's Newton iterations stalled next
         # to the rigid body once the top had turned > 13 deg (lumbar flexion, docs/explanation/fe-model.md).
@@ -305,6 +322,8 @@ def extract_rom_model(
             elsets[f"{g}_{i + 1}"] = np.array([first + i])
             sections.append(Section(elset=f"{g}_{i + 1}", spring_force_elongation=linear_spring_table(k)))
         lig_counts["RIB_HEAD"] = len(rn.points)
+    if peds is not None:
+        add_block(blocks, elsets, sections, ped_ids(peds[0].hexes), peds[0].elsets)
     embedded = None
     if mats.fibre_springs:  # the annulus fibres, as in the exported decks (`spinecohort.fe.fibres`)
         fib = annulus_fibres(template, points, mats, hex_ids)
