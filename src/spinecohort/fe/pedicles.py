@@ -36,7 +36,7 @@ from spinecohort.mesh.template import HexTemplate
 SIDES = ("left", "right")
 #: smallest pedicle section half-extent (mm): a labeled strip narrower than this still gets a solid pedicle
 MIN_SECTION_MM = 2.0
-#: shortest pedicle (mm) from the body's wall to its end
+#: shortest pedicle (mm), the root's centre to the pillar in the transverse plane: a shorter one is an error in the labels
 MIN_LENGTH_MM = 3.0
 
 
