@@ -2,7 +2,7 @@
 import dataclasses
 
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.export import fe_model
+from spinecohort.fe.export import NOT_ANATOMY, fe_model
 from spinecohort.fe.writers import write_vtu
 from spinecohort.logs import to_file
 from spinecohort.mesh.template import TEMPLATE_RESOLUTIONS, build_template
@@ -31,4 +31,4 @@ with to_file(snakemake.log[0]) as log:
         len(template.elsets),
     )
     template.save(snakemake.output.npz)
-    write_vtu(fe_model(template, connectors=False), snakemake.output.vtu)
+    write_vtu(fe_model(template), snakemake.output.vtu, leave_out=NOT_ANATOMY)  # deck ids, no connector lines

@@ -2,7 +2,7 @@
 import numpy as np
 
 from spinecohort.cohort.loading import load_cohort_npz
-from spinecohort.fe.export import fe_model
+from spinecohort.fe.export import NOT_ANATOMY, fe_model
 from spinecohort.fe.writers import write_vtu
 from spinecohort.logs import Progress, to_file
 from spinecohort.mesh.morph import MorphParameters, morph_template
@@ -29,4 +29,4 @@ with to_file(snakemake.log[0]) as log:
         raise RuntimeError(f"the morphed mean has {n_bad} inverted hexes (min scaled Jacobian {sj.min():.3f})")
     report.to_csv(snakemake.output.report, index=False)
     np.savez(snakemake.output.nodes, nodes=nodes, min_scaled_jacobian=sj.min())
-    write_vtu(fe_model(template, nodes, connectors=False), snakemake.output.vtu)
+    write_vtu(fe_model(template, nodes), snakemake.output.vtu, leave_out=NOT_ANATOMY)  # deck ids, no connector lines
