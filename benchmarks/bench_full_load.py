@@ -5,8 +5,10 @@ Run: python benchmarks/bench_full_load.py [--config config/config.yaml] [--resul
          [--models model_08403 model_00000 model_16806] [--cases flexion extension ...] [--moment-nm 7.5]
          [--threads 2] [--timeout-s 1800] [--guided] [--out /tmp/spinecohort_bench_full_load]
 One ccx at a time.  Prints per model and load case: the load fraction reached (1 = the full moment), T1's
-rotation about the load's axis (degrees, the ROT NODE's rotation vector projected on the anatomical axis), the
-wall time (s) and the converged increments; a run stopped by --timeout-s keeps what it reached.  Writes the
+rotation about the load's axis (degrees, the ROT NODE's rotation vector projected on the deck's load axis), the
+moment on T1 about that axis over the load (1: in equilibrium) and the moment across it that held a guided T1 on
+it (N.mm, from the forces T1's rigid nodes pass to the spine; ~0 free), the wall time (s) and the converged
+increments; a run stopped by --timeout-s keeps what it reached.  Writes the
 table to <out>/full_load.csv.  Default models: the mean and the all -3 SD / all +3 SD corners of the grid.
 """
 
@@ -62,14 +64,19 @@ def solve(deck: Path, workdir: Path, threads: int, timeout_s: float) -> dict:
     }
 
 
-def t1_axis(deck_text: str) -> np.ndarray:
-    """The unit moment axis of the deck's *CLOAD on the ROT NODE (global)."""
-    block = deck_text.split("*CLOAD\n")[1].split("*")[0]
-    m = np.zeros(3)
-    for line in block.strip().splitlines():
-        _, dof, value = (s.strip() for s in line.split(","))
-        m[int(dof) - 1] = float(value)
-    return m / np.linalg.norm(m)
+def moment_on_t1(deck_text: str, dat: Path, axis: np.ndarray, moment_nmm: float) -> tuple[float, np.ndarray]:
+    """At the last printed increment: the moment on T1 about the load's axis as a fraction of the load applied then
+    (1 = equilibrium), and the moment (N.mm, global) across the axis that held a guided T1 on it (~0 free)
+    (`spinecohort.rom.reaction.moment_on_top`).  NaN when nothing was printed."""
+    from spinecohort.fe.calculix import parse_dat
+    from spinecohort.rom.reaction import moment_on_top
+
+    tops = moment_on_top(deck_text, parse_dat(dat.read_text())) if dat.exists() else []
+    if not tops:
+        return np.nan, np.full(3, np.nan)
+    m = tops[-1].moment_nmm
+    along = float(m @ axis)
+    return along / (tops[-1].time * moment_nmm), m - along * axis
 
 
 def main(argv=None) -> int:
@@ -86,6 +93,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from spinecohort.cli import main as cli
+    from spinecohort.fe.pure_moment import load_axis
 
     cfg = yaml.safe_load(Path(args.config).read_text())
     results = args.results or cfg.get("results", "results")
@@ -98,14 +106,19 @@ def main(argv=None) -> int:
             export = ["export", model, "--format", "inp", "--load", case, "--moment-nm", str(args.moment_nm)]
             export += ["--guided"] if args.guided else []
             cli([*export, "--config", args.config, "--results", str(results), "--out", str(deck)])
-            run = solve(deck, out / f"{model}_{case}", args.threads, args.timeout_s)
-            axis = t1_axis(deck.read_text())
+            work = out / f"{model}_{case}"
+            run = solve(deck, work, args.threads, args.timeout_s)
+            text = deck.read_text()
+            axis = load_axis(text)
+            balance, guide = moment_on_t1(text, work / f"{deck.stem}.dat", axis, 1000 * args.moment_nm)
             row = {
                 "model": model,
                 "case": case,
                 "guided": args.guided,
                 "load_fraction": round(float(run["load_fraction"]), 4),
                 "t1_rotation_deg": round(float(np.degrees(run["rotation_rad"] @ axis)), 2),
+                "moment_balance": round(balance, 4),
+                "guide_moment_nmm": round(float(np.linalg.norm(guide)), 1),
                 "seconds": run["seconds"],
                 "increments": run["increments"],
                 "status": run["status"],

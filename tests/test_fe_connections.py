@@ -218,6 +218,18 @@ def test_the_export_load_deck_takes_a_25_nmm_flexion_increment_in_one(template, 
     # degrees T1-S1 at 7.5 N.m: a loose part or a mechanism
     assert 0.025 < flex < 2.4, flex
     assert np.degrees(np.abs(r @ frame[:, 1:])).max() < 0.25 * flex  # nearly symmetric: little coupling
+    # T1 is a rigid body in equilibrium: the forces its nodes pass to the spine add up to the load, 25 N.mm about
+    # the deck's load axis and nothing across it or as a net force (to ccx's residual, < 0.5 % of 500 N)
+    from spinecohort.fe.pure_moment import load_axis
+    from spinecohort.rom.reaction import moment_on_top
+
+    text = deck.read_text()
+    axis = load_axis(text)
+    np.testing.assert_allclose(axis, -frame[:, 0], atol=1e-8)  # flexion: about T1's -x
+    top = moment_on_top(text, res.node_prints)[-1]
+    assert top.time == 1.0 and top.moment_nmm @ axis == pytest.approx(25.0, rel=1e-3)
+    assert np.linalg.norm(top.moment_nmm - (top.moment_nmm @ axis) * axis) < 0.25  # 1 % of the load
+    assert np.linalg.norm(top.force_n) < 0.01
 
 
 def test_a_guided_export_load_deck_turns_its_top_about_the_load_axis_only(template, tmp_path):
@@ -225,7 +237,8 @@ def test_a_guided_export_load_deck_turns_its_top_about_the_load_axis_only(templa
     # validation's lumbar model is loaded so); its first 25 N.mm increment converges as the whole step
     from spinecohort.fe.calculix import run_ccx
     from spinecohort.fe.facets import vertebra_frame
-    from spinecohort.fe.pure_moment import model_load_text
+    from spinecohort.fe.pure_moment import load_axis, model_load_text
+    from spinecohort.rom.reaction import moment_on_top
 
     fe = fe_model(template)
     one = dict(initial_increment=1.0, max_increment=1.0, max_increments=1)
@@ -240,17 +253,23 @@ def test_a_guided_export_load_deck_turns_its_top_about_the_load_axis_only(templa
     assert [b.time for b in rot] == [1.0]
     r = rot[0].values[0]
     axis = vertebra_frame(template, fe.nodes, "T1")[0][:, 0]  # extension: +x of T1's frame
+    np.testing.assert_allclose(load_axis(text), axis, atol=1e-8)
     ext = np.degrees(r @ axis)
     assert 0.025 < ext < 2.4, ext  # as the free flexion increment above, by the same argument
     # off the axis: what the deck prints (6 significant digits) leaves of the constraint
     assert np.linalg.norm(np.cross(r, axis)) < 1e-5 * np.linalg.norm(r)
+    # the generalised moment on one rotation component does the work of 25 N.mm about the axis: T1 passes the
+    # load to the spine, plus what the guide holds across the axis (the nearly symmetric mean couples little)
+    top = moment_on_top(text, res.node_prints)[-1]
+    assert top.moment_nmm @ axis == pytest.approx(25.0, rel=1e-3)
+    assert np.linalg.norm(top.moment_nmm - (top.moment_nmm @ axis) * axis) < 0.25 * 25.0
 
 
 def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(template):
     import re
 
     from spinecohort.fe.facets import vertebra_frame
-    from spinecohort.fe.pure_moment import model_load_text
+    from spinecohort.fe.pure_moment import load_axis, model_load_text
 
     fe = fe_model(template)
     n = len(fe.nodes)
@@ -264,9 +283,10 @@ def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(te
         and "\n0.0033333333333333335, 1.0, 1e-05, 0.05\n" in text
         and "*CONTROLS, PARAMETERS=TIME INCREMENTATION\n" in text
     )
-    # the top's rotation, the fixed nodes' reactions (their moment is the one the model carries:
-    # docs/explanation/fe-model.md) and the displacement field for a viewer
-    assert "*NODE PRINT, NSET=ROTTOP\nU\n*NODE PRINT, NSET=FIXED\nRF\n*NODE FILE\nU\n*END STEP\n" in text
+    # the top's rotation, its rigid nodes' positions and forces (their moment is the one on the spine: the pelvis's
+    # shell nodes print zero reactions) and the displacement field for a viewer
+    prints = "*NODE PRINT, NSET=RB_L1\nU\n*NODE PRINT, NSET=RB_L1\nRF\n"
+    assert f"*NODE PRINT, NSET=ROTTOP\nU\n{prints}*NODE FILE\nU\n*END STEP\n" in text
     # the fixed set is the pelvis; the moment is 7.5 N.m about L1's anterior axis (right lateral bending)
     fixed = text.split("*NSET, NSET=FIXED\n")[1].split("*")[0]
     assert sorted(int(i) for i in re.split(r"[,\s]+", fixed.strip())) == (fe.node_sets["PELVIS"] + 1).tolist()
@@ -274,6 +294,7 @@ def test_the_export_load_deck_puts_the_moment_on_the_top_and_fixes_the_pelvis(te
     m = np.array([float(line.split(",")[2]) for line in cload])
     assert all(line.startswith(f"{n + 2}, ") for line in cload)
     np.testing.assert_allclose(m, 7500.0 * vertebra_frame(template, fe.nodes, "L1")[0][:, 1], atol=1e-5)
+    np.testing.assert_allclose(7500.0 * load_axis(text), m, atol=1e-5)  # the axis a reader of the deck finds
     # the arches act through their connector trusses, as in the ROM sub-models: their S3 skins are left out (they
     # made ccx's Newton iterations cycle), the pelvis, sacrum and femoral heads keep theirs, and it is one body
     from spinecohort.fe.pure_moment import arch_skin_free

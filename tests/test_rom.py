@@ -1331,3 +1331,30 @@ def test_the_guide_equations_keep_the_rotation_vector_on_the_load_axis():
     assert load * theta[loaded] == pytest.approx(m @ theta)  # the same work as the moment
     with pytest.raises(ValueError, match="non-zero moment"):
         guide_equations(np.zeros(3))
+
+
+def test_the_moment_of_moving_nodes_takes_their_lever_arms_where_they_are():
+    # Two nodes 10 mm apart on x, turned 90 deg about z to lie on y, pushed +1 / -1 N along x: a couple of
+    # 1 N x 10 mm = 10 N.mm about +z where they are (r x F), none where they started (forces along the arm)
+    from spinecohort.fe.calculix import NodePrint
+    from spinecohort.rom.reaction import moving_resultants
+
+    coords = {1: np.array([-5.0, 0.0, 0.0]), 2: np.array([5.0, 0.0, 0.0])}
+    u = NodePrint(
+        "displacements (vx,vy,vz)", "RB_T1", 1.0, np.array([1, 2]), np.array([[5.0, -5.0, 0], [-5.0, 5.0, 0]])
+    )
+    rf = NodePrint("forces (fx,fy,fz)", "RB_T1", 1.0, np.array([1, 2]), np.array([[1.0, 0, 0], [-1.0, 0, 0]]))
+    lone = NodePrint("forces (fx,fy,fz)", "RB_T1", 0.5, np.array([1, 2]), np.array([[1.0, 0, 0], [-1.0, 0, 0]]))
+    (r,) = moving_resultants(coords, [u, rf, lone], "rb_t1")  # the block without its displacements is skipped
+    np.testing.assert_allclose(r.moment_nmm, [0.0, 0.0, 10.0])
+    np.testing.assert_allclose(r.force_n, 0.0)
+    np.testing.assert_allclose(r.point_mm, 0.0)
+
+
+def test_a_load_deck_names_its_axis_and_anything_else_is_refused():
+    from spinecohort.fe.pure_moment import load_axis
+
+    text = "** load axis (global unit vector): 0.6, -0.8, 0\n*NODE\n"
+    np.testing.assert_allclose(load_axis(text), [0.6, -0.8, 0.0])
+    with pytest.raises(ValueError, match="not a load deck"):
+        load_axis("*NODE\n1, 0, 0, 0\n")

@@ -11,6 +11,7 @@ inside the deck).
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 
@@ -105,13 +106,14 @@ def pure_moment_text(
     correction_tolerance: float = 0.01,
     guided: bool = False,
     time_incrementation: str = ROM_TIME_INCREMENTATION,
+    reaction_set: str = "FIXED",
 ) -> str:
     """What follows a deck's model data for one pure-moment load case: a REF and a ROT NODE per rigid body
     (numbered right after the mesh), the *RIGID BODY of each (0-based node indices), the fixed nodes
     (U1-U3 = 0), one static step with the moment vector `moment_nmm` (3,) N.mm on the ROT NODE of `top`,
     and node prints (U) of that ROT NODE (set ROTTOP: its U1-U3 are the rotations in rad) and of each
-    print set, and the reaction forces (RF) of the fixed nodes (`spinecohort.rom.reaction` reads them).  The
-    step controls are the ones the ROM analyses converge with (docs/explanation/fe-model.md).
+    print set, and the forces (RF) of `reaction_set`: the fixed nodes' reactions (`spinecohort.rom.reaction` reads
+    them), or a rigid body's set ``RB_<top>`` (U and RF: the moment its nodes pass to the spine).  The step controls are the ones the ROM analyses converge with (docs/explanation/fe-model.md).
 
     guided: the ROT NODE's rotation vector is tied to the moment's axis by two *EQUATIONs and the moment acts
     on its remaining component (`guide_equations`): the top turns about the load's axis only, at any angle to
@@ -185,8 +187,12 @@ def pure_moment_text(
             )
     parts.append("*CLOAD\n" + "".join(f"{rot_top}, {k + 1}, {v:.6f}\n" for k, v in cload.items()))
     parts.append("*NODE PRINT, NSET=ROTTOP\nU\n" + "".join(f"*NODE PRINT, NSET={name}\nU\n" for name in print_sets))
-    # the reaction forces of the fixed nodes: the moment the fixation carries (`spinecohort.rom.reaction`)
-    parts.append("*NODE PRINT, NSET=FIXED\nRF\n")
+    # the fixed nodes' reactions: the moment the fixation carries (`spinecohort.rom.reaction`); a moving set's
+    # forces need its displacements for their lever arms
+    if reaction_set == "FIXED":
+        parts.append("*NODE PRINT, NSET=FIXED\nRF\n")
+    else:
+        parts.append(f"*NODE PRINT, NSET={reaction_set}\nU\n*NODE PRINT, NSET={reaction_set}\nRF\n")
     parts.append("*END STEP\n")
     return "".join(parts)
 
@@ -208,10 +214,11 @@ def model_load_text(
     Newton iterations to a stall) and loaded with `moment_nmm` (N.mm) about its anatomical axis of `case`, one
     NLGEOM step with the ROM's convergence controls (`step_kw`: those of `pure_moment_text`; default
     `MODEL_STEP_DEFAULTS`, first increment 25 N.mm, increments growing by `MODEL_TIME_INCREMENTATION`), ROT NODE
-    rotations (rad) printed to the .dat file and, if node_file, displacements to the .frd file.  guided: the top
-    turns about the load's axis only (two *EQUATIONs on its ROT NODE, `guide_equations`), as the ROM's lumbar
-    model: free, the whole spine's extension needs 17-18 Newton iterations an increment and stalls.  Solve with
-    ``ccx -i <job>``."""
+    rotations (rad) and the top's rigid nodes' U and RF (`spinecohort.rom.reaction.moment_on_top`) printed to the
+    .dat file and, if node_file, displacements to the .frd file; the load's axis in a comment (`load_axis`).
+    guided: the top turns about the load's axis only (two *EQUATIONs on its ROT NODE, `guide_equations`), as the
+    ROM's lumbar model: free, the whole spine's extension needs 17-18 Newton iterations an increment and stalls.
+    Solve with ``ccx -i <job>``."""
     if case not in LOAD_CASES:
         raise ValueError(f"unknown load case '{case}' (one of {list(LOAD_CASES)})")
     if top not in LEVELS:
@@ -250,14 +257,31 @@ def model_load_text(
         {},
         sign * moment_nmm * frame[:, axis],
         guided=guided,
+        # the pelvis's nodes are shell nodes, whose reactions ccx prints as zero (it keeps them on the shells'
+        # expanded nodes): the top's rigid nodes tell the moment instead (`moment_on_top`)
+        reaction_set=f"RB_{top}",
         **kw,
     )
     if node_file:
         text = text.replace("*END STEP\n", "*NODE FILE\nU\n*END STEP\n")
     how = ", turning about the load's axis only" if guided else ""
+    a = sign * frame[:, axis]
+    # every comment line within ccx's 132 characters; the load's axis in words a reader and `load_axis` find: a
+    # guided deck's *CLOAD is a generalised force on one rotation component, not the moment vector
     head = (
         f"** pure moment {case}: {moment_nmm / 1000:g} N.m on {top} (rigid body RB_{top}, moment on its ROT NODE"
-        f"{how}), {fixed_set(fe)} fixed; solve: ccx -i <job>; "
-        "ROTTOP's U1-U3 in the .dat = rotation (rad) about x, y, z\n"
+        f"{how}),\n** {fixed_set(fe)} fixed; solve: ccx -i <job>\n"
+        "** ROTTOP's U1-U3 in the .dat: the top's rotation vector (rad, global x, y, z)\n"
+        f"** load axis (global unit vector): {a[0]:.9f}, {a[1]:.9f}, {a[2]:.9f}\n"
+        f"** RB_{top}'s RF in the .dat: the forces its nodes pass to the spine; their moment (lever arms to the\n"
+        "** deformed nodes: U printed beside) is the load plus, guided, what holds the top on the axis\n"
     )
     return model_to_inp_text(fe, provenance=f"load case {case}") + head + text
+
+
+def load_axis(deck_text: str) -> np.ndarray:
+    """The load's axis (global unit vector) that `model_load_text` writes in a load deck's comment."""
+    m = re.search(r"^\*\* load axis \(global unit vector\): ([^,\n]+), ([^,\n]+), ([^,\n]+)$", deck_text, re.MULTILINE)
+    if m is None:
+        raise ValueError("no '** load axis' line: not a load deck written by `spinecohort export --load`")
+    return np.array([float(g) for g in m.groups()])

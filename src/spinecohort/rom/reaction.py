@@ -50,6 +50,27 @@ def reactions(coords_mm: dict[int, np.ndarray], prints: list[NodePrint], node_se
     return [reaction_resultant(coords_mm, b, point_mm) for b in blocks]
 
 
+def moving_resultants(coords_mm: dict[int, np.ndarray], prints: list[NodePrint], node_set: str) -> list[Reaction]:
+    """`Reaction` of every RF block of a set whose nodes move, each with its lever arms to the nodes' positions at
+    that increment (undeformed `coords_mm` plus the set's U block of the same step time; an RF block without one
+    is skipped): the resultant of the forces the set's nodes pass to the rest of the model."""
+    ours = [b for b in prints if b.node_set.upper() == node_set.upper()]
+    u = {b.time: b for b in ours if b.quantity.lower().startswith("displacements")}
+    out = []
+    for b in ours:
+        if b.quantity.lower().startswith("forces") and b.time in u:
+            moved = {int(i): coords_mm[int(i)] + d for i, d in zip(u[b.time].node_ids, u[b.time].values)}
+            out.append(reaction_resultant(moved, b))
+    return out
+
+
+def moment_on_top(deck_text: str, prints: list[NodePrint], top: str = "T1") -> list[Reaction]:
+    """Per printed increment of a whole-model load deck (`spinecohort.fe.pure_moment.model_load_text`), the
+    resultant of the forces the rigid top's nodes (set ``RB_<top>``) pass to the spine: its moment (N.mm) is the
+    load plus, on a guided top, the moment that holds it on the load's axis; its force ~0 (a pure moment)."""
+    return moving_resultants(deck_nodes_and_loads(deck_text)[0], prints, f"RB_{top}")
+
+
 def deck_nodes_and_loads(text: str) -> tuple[dict[int, np.ndarray], list[tuple[int, int, float]]]:
     """Node coordinates (id -> (3,) mm, every *NODE block: the mesh and the rigid bodies' nodes) and the
     ``*CLOAD`` lines (node, dof, value) of a ccx deck as `spinecohort.rom.deck` writes it."""
