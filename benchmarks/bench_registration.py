@@ -11,9 +11,11 @@ Run: python benchmarks/bench_registration.py [speed|correspondence|patient]   (a
 * real PATH: the same comparison on a real bone read from PATH in metres, e.g. the Visible Human L3 of
   Remus et al. 2021 (github.com/RemusR9/artisynth_lumbosacralSpineModel, file hybrid_LSS_model/src/artisynth/
   models/passiveComponents_PlosOne/geometry/RB/L3_Schrumpfverpacken.obj; not vendored here).
-* patient (~25 s per patient of one core; run with OMP_NUM_THREADS=1): spinecohort.cohort.register on
-  coarse synthetic patients brought per bone (re-triangulated, shuffled): CPU seconds of the placement
-  and of the bones, surface distances, correspondence error, PI/PT/SS/LL error against the generator.
+* patient [synthetic|real [SIGMA_START_MM]] (~25 s per coarse synthetic patient of one core, ~100 s per real one;
+  run with OMP_NUM_THREADS=1): spinecohort.cohort.register with that reference (`register.reference`) on three
+  patients of its generator brought per bone (re-triangulated, shuffled), the first BCPD layer from BCPD's gamma
+  or from SIGMA_START_MM (`register.bone.sigma_start_mm`): CPU seconds of the placement and of the bones, surface
+  distances, correspondence error (worst bone), PI/PT/SS/LL error against the generator.
 
 Speed section:
 Case: a vertebral-body-sized superellipsoid (40 x 30 x 24 mm) as source; the target is the same shape
@@ -162,33 +164,45 @@ def _compare(name, src, truth, target, tf):
     row("pycpd 2.0 deformable CPD (alpha 2, beta 2, w 0.1)", peer)
 
 
-def patient(n=3):
+def patient(n=3, reference="synthetic", sigma_start_mm=None):
     from spinecohort.cohort.bones import BoneMesh, check_bone
-    from spinecohort.cohort.register import register_patient, synthetic_reference
-    from spinecohort.cohort.synthetic import generate_cohort
+    from spinecohort.cohort.register import DEFAULTS, real_reference, register_patient, synthetic_reference
     from spinecohort.cohort.user_folder import bone_meshes, retriangulate
     from spinecohort.measure.spinopelvic import measure
 
-    ref = synthetic_reference("coarse")
-    c = generate_cohort(n, seed=5, resolution="coarse")
+    if reference == "real":
+        from spinecohort.cohort.real import generate_real_cohort
+
+        ref, c = real_reference(), generate_real_cohort(n, seed=5)
+    else:
+        from spinecohort.cohort.synthetic import generate_cohort
+
+        ref, c = synthetic_reference("coarse"), generate_cohort(n, seed=5, resolution="coarse")
+    params = {"bone": {**DEFAULTS["bone"], "sigma_start_mm": sigma_start_mm}}
     rng = np.random.default_rng(0)
-    print(f"reference: {len(ref.points)} vertices, 22 bones; patients re-triangulated per bone and shuffled")
+    print(
+        f"{reference} reference: {len(ref.points)} vertices, 22 bones; first BCPD layer from "
+        f"{'gamma' if sigma_start_mm is None else f'{sigma_start_mm:g} mm'}; patients re-triangulated per bone, shuffled"
+    )
     for pid, pts in zip(c.ids, c.vertices):
         pieces = [
             check_bone(BoneMesh(name, *retriangulate(p, f, rng), name), pid, "mm")
             for name, (p, f) in bone_meshes(pts, c.faces, ref.bone).items()
         ]
         t0 = time.process_time()
-        out, rep = register_patient(ref, pieces, pid, named=True)
+        out, rep = register_patient(ref, pieces, pid, named=True, params=params)
         total = time.process_time() - t0
         m = measure(out[None], ref.landmarks).iloc[0]
         row = c.table.set_index("ID").loc[pid]
         err = ", ".join(f"{k} {m[k] - row[k]:+.2f}" for k in ("PI", "PT", "SS", "LL"))
+        worst = np.linalg.norm(out - pts, axis=1)
+        per_bone = {b: worst[ref.vertices_of(b)].mean() for b in rep.bone}
+        bad = max(per_bone, key=per_bone.get)
         print(
             f"  {pid}: {total:.1f} s CPU (placement {rep.attrs['placement_cpu_s']:.1f} s, bones {rep.cpu_s.sum():.1f} s,"
             f" slowest {rep.loc[rep.cpu_s.idxmax(), 'bone']} {rep.cpu_s.max():.1f} s); surface distance mean "
             f"{rep.mean_mm.mean():.3f} mm (worst bone {rep.mean_mm.max():.3f}, back {rep.back_mean_mm.max():.3f}); "
-            f"correspondence {_errors(out, pts)} mm; error deg: {err}",
+            f"correspondence {_errors(out, pts)} mm (worst bone {bad} {per_bone[bad]:.2f}); error deg: {err}",
             flush=True,
         )
 
@@ -196,6 +210,9 @@ def patient(n=3):
 if __name__ == "__main__":
     if sys.argv[1:2] == ["real"]:
         real(sys.argv[2])
+        sys.exit(0)
+    if sys.argv[1:2] == ["patient"] and len(sys.argv) > 2:  # patient REFERENCE [SIGMA_START_MM]
+        patient(reference=sys.argv[2], sigma_start_mm=float(sys.argv[3]) if len(sys.argv) > 3 else None)
         sys.exit(0)
     sections = {"speed": speed, "correspondence": correspondence, "patient": patient}
     for name in sys.argv[1:] or list(sections):

@@ -56,12 +56,19 @@ def _generate(args: argparse.Namespace) -> int:
 
 
 def _write_folder(args: argparse.Namespace) -> int:
-    from spinecohort.cohort.register import bone_labels
-    from spinecohort.cohort.synthetic import generate_cohort
     from spinecohort.cohort.user_folder import write_user_folder
 
-    c = generate_cohort(args.n, seed=args.seed, resolution=args.resolution, noise_mm=args.noise_mm)
-    bone = bone_labels(c.vertices[0], c.faces, c.landmarks)
+    if args.generator == "real":  # the bones of `register.reference: real`
+        from spinecohort.cohort.real import generate_real_cohort
+        from spinecohort.cohort.register import real_reference
+
+        c, bone = generate_real_cohort(args.n, seed=args.seed), real_reference().bone
+    else:  # the bones of `register.reference: synthetic`
+        from spinecohort.cohort.register import bone_labels
+        from spinecohort.cohort.synthetic import generate_cohort
+
+        c = generate_cohort(args.n, seed=args.seed, resolution=args.resolution, noise_mm=args.noise_mm)
+        bone = bone_labels(c.vertices[0], c.faces, c.landmarks)
     written = write_user_folder(args.out, c.ids, c.vertices, c.faces, bone, c.table, args.per_bone, args.remesh_seed)
     kind = "one folder per patient, one file per bone" if args.per_bone else "one mesh per patient"
     print(f"{len(c.ids)} patients re-triangulated ({kind}), {len(written)} files -> {args.out}")
@@ -402,8 +409,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     w.add_argument("--n", type=int, default=8, help="number of patients (default 8)")
     w.add_argument("--seed", type=int, default=20240549)
-    w.add_argument("--resolution", choices=["coarse", "default", "fine"], default="coarse")
-    w.add_argument("--noise-mm", type=float, default=0.8)
+    w.add_argument(
+        "--generator",
+        choices=["real", "primitives"],
+        default="real",
+        help="real bones (default; register them with register.reference: real) or primitives (register.reference: "
+        "synthetic)",
+    )
+    w.add_argument("--resolution", choices=["coarse", "default", "fine"], default="coarse", help="(primitives)")
+    w.add_argument("--noise-mm", type=float, default=0.8, help="(primitives)")
     w.add_argument("--remesh-seed", type=int, default=0, help="seed of the re-triangulation and shuffling")
     w.set_defaults(func=_write_folder)
 

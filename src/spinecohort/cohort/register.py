@@ -42,6 +42,7 @@ DEFAULTS = {
         "tol": 1.0e-5,
         "downsample_radius_mm": 1.5,
         "layers": 3,
+        "sigma_start_mm": 10.0,
     },
     "bound_mean_mm": 0.5,
     "min_assigned_fraction": 0.6,
@@ -135,6 +136,32 @@ def synthetic_reference(resolution: str = "coarse", seed: int = 0) -> LabeledRef
     )
     verts, faces, lm, _ = syn.build_patient_mesh(p, syn.RESOLUTIONS[resolution], noise_mm=0.0, rng=None)
     return LabeledReference(verts, faces, bone_labels(verts, faces, lm), lm)
+
+
+def real_reference(path=None) -> LabeledReference:
+    """The real-bone reference (`spinecohort.anatomy.reference`, numbered as the real cohort's models:
+    `spinecohort.cohort.real.first_use_reference`) as a labeled reference: its bone per vertex from its labels
+    (a vertebra's level; sacrum and S1 plate; ilium and pubis, patient left / right = hip_left / hip_right;
+    femoral heads by side), its landmarks with the facet surfaces, ligament sites and pedicles a registered
+    patient inherits."""
+    from spinecohort.anatomy.labels import REGIONS
+    from spinecohort.anatomy.reference import load_reference
+    from spinecohort.cohort.real import first_use_reference
+
+    ref = first_use_reference(load_reference(path))
+    vertebra = ref.level >= 0
+    bone = np.where(vertebra, ref.level, -1).astype(np.int16)  # BONES begins with LEVELS
+
+    def regions(*names):
+        return ~vertebra & np.isin(ref.region, [REGIONS.index(n) for n in names])
+
+    bone[regions("sacrum", "s1_plate")] = BONES.index("sacrum")
+    for side, sign in (("left", -1), ("right", 1)):
+        bone[regions("ilium", "pubis") & (ref.side == sign)] = BONES.index(f"hip_{side}")
+        bone[regions("femoral_head") & (ref.side == sign)] = BONES.index(f"femur_{side}")
+    if np.any(bone < 0):
+        raise ValueError(f"{int((bone < 0).sum())} real reference vertices belong to no bone")
+    return LabeledReference(ref.vertices, ref.faces, bone, ref.landmarks)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -269,6 +296,7 @@ def register_bone(source: np.ndarray, target: BoneMesh, params: dict) -> np.ndar
         max_iter=params["max_iter"],
         tol=params["tol"],
         downsample_radius=params["downsample_radius_mm"],
+        first_sigma=params["sigma_start_mm"],
     )
     return res.deformed
 

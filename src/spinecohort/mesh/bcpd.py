@@ -281,6 +281,7 @@ def multilayer_register(
     radius_refine: float = 1.0,
     min_beta: float = 0.1,
     max_K: int = 600,
+    first_sigma: float | None = None,
     **kwargs,
 ) -> NonrigidResult:
     """Multilayer BCPD (seed Methods B): re-register the previous output until the mean distance < ``bound``.
@@ -293,7 +294,8 @@ def multilayer_register(
     correspondence step - 30k points, 1.3 -> 0.65 mm took over 4 minutes - while beta, not the sampling,
     limits the detail a layer can fit).  Every layer after the first starts sigma at the previous layer's
     final sigma (at least its mean distance): restarted from all pairs (BCPD's ``gamma``), a layer lets the
-    points slide along the surface and loses the correspondence the first one found.  Stops at ``bound`` mm (distance to the target surface if
+    points slide along the surface and loses the correspondence the first one found; ``first_sigma`` (mm) starts the
+    first layer there too (a source already placed on the target), None at BCPD's ``gamma``.  Stops at ``bound`` mm (distance to the target surface if
     ``target_faces`` given, else to the nearest target point) or after ``max_layers``.  ``history`` lists
     per layer: beta, lam, K, downsample_radius, iterations, mean_distance (mm).  Other keyword arguments
     go to ``nonrigid_register``.
@@ -313,7 +315,7 @@ def multilayer_register(
     beta0 = beta
     for i in range(max_layers):
         k = int(min(max_K, round(k0 * (beta0 / beta) ** 2)))
-        sigma_init = None if result is None else max(result.sigma, result.mean_distance)
+        sigma_init = first_sigma if result is None else max(result.sigma, result.mean_distance)
         result = nonrigid_register(
             current,
             target,
