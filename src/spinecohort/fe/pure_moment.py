@@ -113,7 +113,8 @@ def pure_moment_text(
     (U1-U3 = 0), one static step with the moment vector `moment_nmm` (3,) N.mm on the ROT NODE of `top`,
     and node prints (U) of that ROT NODE (set ROTTOP: its U1-U3 are the rotations in rad) and of each
     print set, and the forces (RF) of `reaction_set`: the fixed nodes' reactions (`spinecohort.rom.reaction` reads
-    them), or a rigid body's set ``RB_<top>`` (U and RF: the moment its nodes pass to the spine).  The step controls are the ones the ROM analyses converge with (docs/explanation/fe-model.md).
+    them), or a rigid body's set ``RB_<top>`` (U and RF: the moment its nodes pass to the spine).  The step
+    controls are the ones the ROM analyses converge with (docs/explanation/fe-model.md).
 
     guided: the ROT NODE's rotation vector is tied to the moment's axis by two *EQUATIONs and the moment acts
     on its remaining component (`guide_equations`): the top turns about the load's axis only, at any angle to

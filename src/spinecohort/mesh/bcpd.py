@@ -294,11 +294,11 @@ def multilayer_register(
     correspondence step - 30k points, 1.3 -> 0.65 mm took over 4 minutes - while beta, not the sampling,
     limits the detail a layer can fit).  Every layer after the first starts sigma at the previous layer's
     final sigma (at least its mean distance): restarted from all pairs (BCPD's ``gamma``), a layer lets the
-    points slide along the surface and loses the correspondence the first one found; ``first_sigma`` (mm) starts the
-    first layer there too (a source already placed on the target), None at BCPD's ``gamma``.  Stops at ``bound`` mm (distance to the target surface if
-    ``target_faces`` given, else to the nearest target point) or after ``max_layers``.  ``history`` lists
-    per layer: beta, lam, K, downsample_radius, iterations, mean_distance (mm).  Other keyword arguments
-    go to ``nonrigid_register``.
+    points slide along the surface and loses the correspondence the first one found; ``first_sigma`` (mm) starts
+    the first layer there too (a source already placed on the target), None at BCPD's ``gamma``.  Stops at
+    ``bound`` mm (distance to the target surface if ``target_faces`` given, else to the nearest target point) or
+    after ``max_layers``.  ``history`` lists per layer: beta, lam, K, downsample_radius, iterations,
+    mean_distance (mm).  Other keyword arguments go to ``nonrigid_register``.
     """
     if bound <= 0 or max_layers < 1 or not 0 < refine <= 1 or lam_refine <= 0 or radius_refine <= 0:
         raise ValueError("need bound > 0, max_layers >= 1, 0 < refine <= 1, lam_refine > 0, radius_refine > 0")
