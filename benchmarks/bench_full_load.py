@@ -70,13 +70,13 @@ def moment_on_t1(deck_text: str, dat: Path, axis: np.ndarray, moment_nmm: float)
     (`spinecohort.rom.reaction.moment_on_top`).  NaN when nothing was printed."""
     from spinecohort.fe.calculix import parse_dat
     from spinecohort.rom.reaction import moment_on_top
+    from spinecohort.rom.run import guide_moment
 
     tops = moment_on_top(deck_text, parse_dat(dat.read_text())) if dat.exists() else []
     if not tops:
         return np.nan, np.full(3, np.nan)
-    m = tops[-1].moment_nmm
-    along = float(m @ axis)
-    return along / (tops[-1].time * moment_nmm), m - along * axis
+    load = tops[-1].time * moment_nmm
+    return float(tops[-1].moment_nmm @ axis) / load, guide_moment(tops[-1].moment_nmm, load * axis)
 
 
 def main(argv=None) -> int:

@@ -243,6 +243,7 @@ def model_load_text(
     fe, new = potted_plate(fe, template.grid.quads, hosts, {top: (inf * n2 + np.arange(n2), frame[:, 2], 1.0)})
     rigid = np.concatenate([rigid[~np.isin(rigid, hosts)], new[top]])
     axis, sign = LOAD_CASES[case]
+    a = sign * frame[:, axis]  # the load's axis (global unit vector)
     first = min(MODEL_INCREMENT_NMM / moment_nmm, MODEL_STEP_DEFAULTS["max_increment"])
     kw = {
         **MODEL_STEP_DEFAULTS,
@@ -256,7 +257,7 @@ def model_load_text(
         top,
         fe.node_sets[fixed_set(fe)],
         {},
-        sign * moment_nmm * frame[:, axis],
+        moment_nmm * a,
         guided=guided,
         # the pelvis's nodes are shell nodes, whose reactions ccx prints as zero (it keeps them on the shells'
         # expanded nodes): the top's rigid nodes tell the moment instead (`moment_on_top`)
@@ -266,7 +267,6 @@ def model_load_text(
     if node_file:
         text = text.replace("*END STEP\n", "*NODE FILE\nU\n*END STEP\n")
     how = ", turning about the load's axis only" if guided else ""
-    a = sign * frame[:, axis]
     # every comment line within ccx's 132 characters; the load's axis in words a reader and `load_axis` find: a
     # guided deck's *CLOAD is a generalised force on one rotation component, not the moment vector
     head = (
