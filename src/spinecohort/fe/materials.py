@@ -62,8 +62,8 @@ class FEMaterials:
     nucleus: tuple[float, float, float] = (0.12, 0.03, 0.0111)  # C10, C01 MPa, D1 1/MPa (K 180 MPa)
     annulus_c10_mpa: float = 0.18
     annulus_d1_per_mpa: float = 0.3  # calibrated (config/config.yaml)
-    # the ground substance's volumetric term (abaqus.NeoHooke): "logarithmic" (a barrier as J -> 0) or "quadratic" (J-1)^2/D1
-    annulus_volumetric: str = "logarithmic"
+    # the ground substance's volumetric term (abaqus.NeoHooke): "quadratic" (J-1)^2/D1 or "logarithmic" (a barrier)
+    annulus_volumetric: str = "quadratic"
     fibre_k1_mpa: float = 2.5
     # radial k1 gradient (`annulus_ring_k1`): k1 of the innermost / outermost annulus ring (MPa), linear in
     # between; None (both): the uniform fibre_k1_mpa
@@ -203,7 +203,6 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         nucleus=(float(np_["c10_mpa"]), float(np_["c01_mpa"]), float(np_["d1_per_mpa"])),
         annulus_c10_mpa=float(af["c10_mpa"]),
         annulus_d1_per_mpa=float(af["d1_per_mpa"]),
-        # absent: a release made before the barrier, whose decks carry the quadratic term
         annulus_volumetric=str(af.get("volumetric", "quadratic")),
         fibre_k1_mpa=float(fib["k1_mpa"]),
         fibre_k1_inner_mpa=_optional_float(fib.get("k1_inner_mpa")),
