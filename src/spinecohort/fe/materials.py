@@ -63,7 +63,7 @@ class FEMaterials:
     annulus_c10_mpa: float = 0.18
     annulus_d1_per_mpa: float = 0.3  # calibrated (config/config.yaml)
     # the ground substance's volumetric term (abaqus.NeoHooke): "quadratic" (J-1)^2/D1 or "logarithmic" (a barrier)
-    annulus_volumetric: str = "logarithmic"
+    annulus_volumetric: str = "quadratic"
     fibre_k1_mpa: float = 2.5
     # radial k1 gradient (`annulus_ring_k1`): k1 of the innermost / outermost annulus ring (MPa), linear in
     # between; None (both): the uniform fibre_k1_mpa
@@ -203,7 +203,7 @@ def materials_from_config(fe: dict | None) -> FEMaterials:
         nucleus=(float(np_["c10_mpa"]), float(np_["c01_mpa"]), float(np_["d1_per_mpa"])),
         annulus_c10_mpa=float(af["c10_mpa"]),
         annulus_d1_per_mpa=float(af["d1_per_mpa"]),
-        annulus_volumetric=str(af.get("volumetric", "logarithmic")),
+        annulus_volumetric=str(af.get("volumetric", "quadratic")),
         fibre_k1_mpa=float(fib["k1_mpa"]),
         fibre_k1_inner_mpa=_optional_float(fib.get("k1_inner_mpa")),
         fibre_k1_outer_mpa=_optional_float(fib.get("k1_outer_mpa")),

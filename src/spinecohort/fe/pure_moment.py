@@ -55,10 +55,10 @@ MODEL_INCREMENT_NMM = 25.0
 #: at most I_G = 16 iterations, and shrinks after one that took more than I_L = 20 (ccx's defaults 4 and 10).  The
 #: whole spine's increments take 6-12 iterations, more for larger ones but fewer per newton-millimetre (0.05 %
 #: of the load per iteration at 25 N.mm, 0.09 % at 84 N.mm on the test model): with I_G = 4 the step never left
-#: its 25 N.mm first increment (300 increments for the load), with I_G = 8 it stayed at 84 N.mm.  ccx's divergence
-#: check starts at its default I_0 = 4: with 20, an overshooting iteration of the all -3 SD model's right lateral
-#: bending ran on to a residual of 1e87 N and the factorization after the cutback never ended
-MODEL_TIME_INCREMENTATION = "4, 30, 9, 200, 20, 16, , 20"
+#: its 25 N.mm first increment (300 increments for the load), with I_G = 8 it stayed at 84 N.mm.  The divergence
+#: check waits for iteration I_0 = 20: with ccx's 4 it cut every attempt of the mean model's lateral bending (with the
+#: logarithmic volume term), whose iterations cycle for ~20 before they converge (docs/explanation/fe-model.md)
+MODEL_TIME_INCREMENTATION = "20, 30, 9, 200, 20, 16, , 20"
 
 
 #: ccx's time-incrementation controls I_0, I_R, I_P, I_C, I_L, I_G, I_S, I_A of the ROM decks: more Newton iterations
