@@ -56,8 +56,8 @@ MODEL_INCREMENT_NMM = 25.0
 #: whole spine's increments take 6-12 iterations, more for larger ones but fewer per newton-millimetre (0.05 %
 #: of the load per iteration at 25 N.mm, 0.09 % at 84 N.mm on the test model): with I_G = 4 the step never left
 #: its 25 N.mm first increment (300 increments for the load), with I_G = 8 it stayed at 84 N.mm.  The divergence
-#: check waits for iteration I_0 = 20: with ccx's 4 it cut every attempt of the mean model's lateral bending (with the
-#: logarithmic volume term), whose iterations cycle for ~20 before they converge (docs/explanation/fe-model.md)
+#: check starts at I_0 = 20, not ccx's 4, for the increments whose iterations cycle before they converge
+#: (docs/explanation/fe-model.md "Elements")
 MODEL_TIME_INCREMENTATION = "20, 30, 9, 200, 20, 16, , 20"
 
 
