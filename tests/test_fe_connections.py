@@ -224,6 +224,8 @@ def test_the_export_load_deck_takes_a_25_nmm_flexion_increment_in_one(template, 
     from spinecohort.rom.reaction import moment_on_top
 
     text = deck.read_text()
+    # the model deck's nucleus is C3D20R; the load deck's fully integrated (`fully_integrated_nucleus`)
+    assert "*ELEMENT, TYPE=C3D20, ELSET=HEXES_NP\n" in text and "TYPE=C3D20R" not in text
     axis = load_axis(text)
     np.testing.assert_allclose(axis, -frame[:, 0], atol=1e-8)  # flexion: about T1's -x
     top = moment_on_top(text, res.node_prints)[-1]

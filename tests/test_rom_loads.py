@@ -12,7 +12,14 @@ from spinecohort.fe.calculix import NodePrint, run_ccx
 from spinecohort.fe.facets import strut_table
 from spinecohort.fe.quadratic import quadratic_hexes
 from spinecohort.fe.writers import model_to_inp_text
-from spinecohort.rom.loads import facet_forces, facet_struts, nucleus_pressure, nucleus_sets, with_load_prints
+from spinecohort.rom.loads import (
+    element_pressure,
+    facet_forces,
+    facet_struts,
+    nucleus_pressure,
+    nucleus_sets,
+    with_load_prints,
+)
 from spinecohort.testing import hex_grid
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="CalculiX 'ccx' not installed")
@@ -23,8 +30,9 @@ def _step(body: str) -> str:
 
 
 @needs_ccx
-def test_nucleus_pressure_of_a_confined_two_layer_block_is_the_volume_weighted_closed_form(tmp_path):
-    # A 10 x 10 mm column of two C3D20R layers, 4 mm (nu 0.49, nucleus-like) under 6 mm (nu 0.3), rollers on
+@pytest.mark.parametrize("etype", ["C3D20R", "C3D20"])
+def test_nucleus_pressure_of_a_confined_two_layer_block_is_the_volume_weighted_closed_form(tmp_path, etype):
+    # A 10 x 10 mm column of two 20-node layers (the model's C3D20R; C3D20, the load deck's), 4 mm (nu 0.49, nucleus-like) under 6 mm (nu 0.3), rollers on
     # every side and the bottom, 0.5 MPa on top (linear, confined compression): in each layer sigma_zz = -q and
     # sigma_xx = sigma_yy = -q nu / (1 - nu), so p = q (1 + nu) / (3 (1 - nu)): 0.48693 and 0.30952 MPa.
     # Volume-weighted over the set: (4 * 0.48693 + 6 * 0.30952) / 10 = 0.38048 MPa (a plain mean of the two
@@ -35,7 +43,7 @@ def test_nucleus_pressure_of_a_confined_two_layer_block_is_the_volume_weighted_c
     pts = np.concatenate([nodes, mid])
     fe = FEModel(
         pts,
-        {"NP": ("C3D20R", hex20)},
+        {"NP": (etype, hex20)},
         element_sets={"LOWER": np.array([0]), "UPPER": np.array([1]), "D_L4L5_NP": np.array([0, 1])},
         materials=[LinearElastic("SOFT", 1.0, 0.49), LinearElastic("FIRM", 1.0, 0.3)],
         sections=[Section("LOWER", material="SOFT"), Section("UPPER", material="FIRM")],
@@ -57,6 +65,26 @@ def test_nucleus_pressure_of_a_confined_two_layer_block_is_the_volume_weighted_c
     assert got["pressure_mpa"].iloc[0] == pytest.approx((4 * p[0] + 6 * p[1]) / 10, rel=1e-4)
     # at a time with no print the pressure is unknown, not zero
     assert np.isnan(nucleus_pressure(fe, prints, 0.5)["pressure_mpa"].iloc[0])
+
+
+def _one_element_stresses(element: int, pressure_mpa: np.ndarray) -> NodePrint:
+    """An *EL PRINT S block of one element: hydrostatic stress -p at its integration points 1..len(p)."""
+    n = len(pressure_mpa)
+    values = np.column_stack([np.arange(1, n + 1), -np.repeat(pressure_mpa[:, None], 3, 1), np.zeros((n, 3))])
+    return NodePrint(
+        "stresses (elem, integ.pnt.,sxx,syy,szz,sxy,sxz,syz)", "D_L4L5_NP", 1.0, np.full(n, element), values
+    )
+
+
+def test_element_pressure_weights_a_fully_integrated_hex_by_its_gauss_rule():
+    # C3D20's 27 points are the 3-point Gauss-Legendre rule in each direction (xi = -sqrt(0.6), 0, +sqrt(0.6), the
+    # first fastest).  A pressure p = xi^2 over the parent cube has the mean 1/3 (closed form), which the rule
+    # integrates exactly; the plain mean of the 27 point values is 0.4.  The 8 points of C3D20R weigh alike.
+    xi = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
+    elems, p = element_pressure(_one_element_stresses(7, np.tile(xi**2, 9)))
+    assert elems.tolist() == [7] and p[0] == pytest.approx(1.0 / 3.0, rel=1e-12)
+    p8 = np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8])
+    assert element_pressure(_one_element_stresses(3, p8))[1][0] == pytest.approx(0.45, rel=1e-12)
 
 
 @needs_ccx

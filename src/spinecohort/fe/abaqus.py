@@ -1,7 +1,7 @@
 """The Abaqus/CalculiX vocabulary of the hexahedral spine models in memory: element types, materials,
 sections, orientations, the `FEModel` that holds them, and its validation.
 
-Decks use only what both Abaqus and CalculiX (ccx 2.20) accept: C3D8/C3D8I/C3D8R/C3D20R hexes, S3/S4 shells,
+Decks use only what both Abaqus and CalculiX (ccx 2.20) accept: C3D8/C3D8I/C3D8R/C3D20/C3D20R hexes, S3/S4 shells,
 SPRINGA springs, T3D2 trusses and GAPUNI gaps; *MATERIAL (*ELASTIC, *HYPERELASTIC MOONEY-RIVLIN / NEO HOOKE /
 ARRUDA-BOYCE, *USER MATERIAL) and one section per element set.  Units: mm, N, MPa.
 
@@ -23,6 +23,7 @@ NODES_PER_ELEMENT = {
     "C3D8": 8,
     "C3D8I": 8,
     "C3D8R": 8,
+    "C3D20": 20,
     "C3D20R": 20,
     "S3": 3,
     "S4": 4,
@@ -36,7 +37,8 @@ MESHIO_CELL_TYPE = {
     "C3D8": "hexahedron",
     "C3D8I": "hexahedron",
     "C3D8R": "hexahedron",
-    "C3D20R": "hexahedron20",  # same node order in VTK and Abaqus
+    "C3D20": "hexahedron20",  # same node order in VTK and Abaqus
+    "C3D20R": "hexahedron20",
     "S3": "triangle",
     "S4": "quad",
     "S4R": "quad",
@@ -44,7 +46,7 @@ MESHIO_CELL_TYPE = {
     "T3D2": "line",
     "GAPUNI": "line",
 }
-SOLID_TYPES = {"C3D8", "C3D8I", "C3D8R", "C3D20R"}
+SOLID_TYPES = {"C3D8", "C3D8I", "C3D8R", "C3D20", "C3D20R"}
 SHELL_TYPES = {"S3", "S4", "S4R"}
 # ccx 2.20 rejects or mis-handles these (see reference/calculix.md): refuse them instead of writing a
 # deck that fails or silently shifts results.

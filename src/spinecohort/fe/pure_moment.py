@@ -76,6 +76,16 @@ def arch_skin_free(fe: FEModel) -> FEModel:
     return without_elements(fe, np.unique(np.concatenate(arch)) if arch else np.zeros(0, np.int64))
 
 
+def fully_integrated_nucleus(fe: FEModel) -> FEModel:
+    """The whole model as its load deck solves it: the nucleus' reduced-integration C3D20R hexes as fully
+    integrated C3D20 (same nodes, same ties).  At the whole spine's load the nucleus pressure of a thin thoracic
+    disc made a spurious mode of C3D20R (zero strain at its 8 points) buckle: the all -3 SD model's right lateral
+    bending stopped at 81 % of the load, its Newton corrections largest on the T4-T5 nucleus' inner nodes.
+    C3D20 has no such mode; it is stiffer in bending (docs/explanation/fe-model.md "Loading the whole model")."""
+    blocks = {name: ("C3D20" if t == "C3D20R" else t, conn) for name, (t, conn) in fe.element_blocks.items()}
+    return dataclasses.replace(fe, element_blocks=blocks)
+
+
 def guide_equations(moment_nmm: np.ndarray) -> tuple[int, list[tuple[int, float]], float]:
     """How a guided top turns about the moment's axis a = m / |m| only: its ROT NODE's rotation vector theta
     stays along a, i.e. theta_h = (a_h / a_l) theta_l for the two components h other than l, the global axis
@@ -212,8 +222,8 @@ def model_load_text(
 ) -> str:
     """A complete, runnable pure-moment deck of a whole exported model (`spinecohort.fe.export.fe_model`,
     nodes in template order): the model data without the arches' skins (`arch_skin_free`: each arch acts through
-    its connector truss), the pelvis fixed (node set ``PELVIS``, else the S1 plate), the body of vertebra `top`
-    rigid (its hex nodes; its arch hangs on it by the connectors: a rigid body holding shell nodes slowed ccx's
+    its connector truss) and with a fully integrated nucleus (`fully_integrated_nucleus`), the pelvis fixed (node
+    set ``PELVIS``, else the S1 plate), the body of vertebra `top` rigid (its hex nodes; its arch hangs on it by the connectors: a rigid body holding shell nodes slowed ccx's
     Newton iterations to a stall) and loaded with `moment_nmm` (N.mm) about its anatomical axis of `case`, one
     NLGEOM step with the ROM's convergence controls (`step_kw`: those of `pure_moment_text`; default
     `MODEL_STEP_DEFAULTS`, first increment 25 N.mm, increments growing by `MODEL_TIME_INCREMENTATION`), ROT NODE
@@ -228,7 +238,7 @@ def model_load_text(
         raise ValueError(f"top vertebra '{top}' is not one of {LEVELS}")
     if len(fe.nodes) < template.n_nodes:  # the template's nodes first, then the facet-joint nodes
         raise ValueError(f"the deck has {len(fe.nodes)} nodes, the template {template.n_nodes}: not its export")
-    fe = arch_skin_free(fe)
+    fe = fully_integrated_nucleus(arch_skin_free(fe))
     n2 = len(template.grid.nodes)
     inf, sup = body_layer(template, top, 0.0), body_layer(template, top, 1.0)
     rigid = np.arange(inf * n2, (sup + 1) * n2)
@@ -274,6 +284,7 @@ def model_load_text(
     head = (
         f"** pure moment {case}: {moment_nmm / 1000:g} N.m on {top} (rigid body RB_{top}, moment on its ROT NODE"
         f"{how}),\n** {fixed_set(fe)} fixed; solve: ccx -i <job>\n"
+        "** as the model deck without the arches' S3 skins, and the nucleus fully integrated (C3D20, not C3D20R)\n"
         "** ROTTOP's U1-U3 in the .dat: the top's rotation vector (rad, global x, y, z)\n"
         f"** load axis (global unit vector): {a[0]:.9f}, {a[1]:.9f}, {a[2]:.9f}\n"
         f"** RB_{top}'s RF in the .dat: the forces its nodes pass to the spine; their moment (lever arms to the\n"

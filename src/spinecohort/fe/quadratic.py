@@ -3,7 +3,9 @@
 Why (docs/explanation/fe-model.md): ccx 2.20's C3D8R discs do not keep moment equilibrium once the hexes are distorted
 and the nucleus is nearly incompressible (the S1 plate of the T10-S1 model carries 87 % of 7.5 N.m), and a
 fully integrated C3D8 nucleus locks.  C3D20R needs no hourglass control and does not lock, so the disc soft
-tissue can be quadratic while bone and cartilage endplates stay C3D8.
+tissue can be quadratic while bone and cartilage endplates stay C3D8.  Fully integrated C3D20 locks mildly but has
+no spurious mode for the nucleus pressure to buckle: the whole-model load deck's nucleus
+(`spinecohort.fe.pure_moment.fully_integrated_nucleus`).
 
 Conformity: a C3D8 face is bilinear, so along each of its edges the displacement is linear.  A midside node
 of a quadratic hex that lies on an edge of a linear neighbour must therefore move as the mean of that edge's
@@ -21,6 +23,8 @@ import numpy as np
 
 from spinecohort.fe.abaqus import SOLID_TYPES
 
+#: the 20-node hexes: C3D20 (27 integration points) and C3D20R (8, reduced)
+QUADRATIC_TYPES = frozenset({"C3D20", "C3D20R"})
 #: corner pairs (0-based) of the 12 edges of a hex, in the order of C3D20's midside nodes 9..20
 HEX20_EDGES = np.array(
     [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64
@@ -60,16 +64,16 @@ def quadratic_hexes(
 
 
 def quadratic_blocks(
-    points_mm: np.ndarray, blocks: dict[str, tuple[str, np.ndarray]], quadratic_type: str = "C3D20R"
+    points_mm: np.ndarray, blocks: dict[str, tuple[str, np.ndarray]]
 ) -> tuple[np.ndarray, dict[str, tuple[str, np.ndarray]], np.ndarray | None]:
-    """Give every hex block of `blocks` ({name: (type, (E, 8) 0-based)}) whose type is `quadratic_type` its
-    midside nodes (shared between those blocks), tied to the 8-node hexes of the other blocks.  Returns
+    """Give every hex block of `blocks` ({name: (type, (E, 8) 0-based)}) of a 20-node type (`QUADRATIC_TYPES`)
+    its midside nodes (shared between those blocks), tied to the 8-node hexes of the other blocks.  Returns
     the points with the midside nodes appended, the blocks with (E, 20) connectivity and the (K, 3) ties
     (none without a quadratic block)."""
-    quad = [name for name, (etype, _) in blocks.items() if etype == quadratic_type]
+    quad = [name for name, (etype, _) in blocks.items() if etype in QUADRATIC_TYPES]
     if not quad:
         return points_mm, blocks, np.zeros((0, 3), dtype=np.int64)
-    linear = [conn for etype, conn in blocks.values() if etype != quadratic_type and etype in SOLID_TYPES]
+    linear = [conn for etype, conn in blocks.values() if etype not in QUADRATIC_TYPES and etype in SOLID_TYPES]
     conn8 = np.concatenate([blocks[name][1] for name in quad])
     midside, hex20, ties = quadratic_hexes(
         points_mm, conn8, np.concatenate(linear) if linear else np.zeros((0, 8), np.int64)
@@ -78,7 +82,7 @@ def quadratic_blocks(
     start = 0
     for name in quad:
         n = len(blocks[name][1])
-        out[name] = (quadratic_type, hex20[start : start + n])
+        out[name] = (blocks[name][0], hex20[start : start + n])
         start += n
     return np.concatenate([np.asarray(points_mm, dtype=np.float64), midside]), out, ties
 

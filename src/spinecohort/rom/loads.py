@@ -3,9 +3,9 @@ of every facet-joint contact strut, read from the ccx run's own ``.dat``.
 
 * **Intradiscal pressure** (IDP): the hydrostatic pressure p = -tr(sigma) / 3 of the nucleus (element sets
   ``D_<upper><lower>_NP``), averaged over each element's integration points and weighted by element volume
-  (``*EL PRINT`` of S and EVOL: ccx prints Cauchy stresses and the current volume).  A nucleus of C3D20R
-  elements has eight integration points of equal weight in the parent element; the per-element mean is their
-  plain mean.
+  (``*EL PRINT`` of S and EVOL: ccx prints Cauchy stresses and the current volume).  The per-element mean
+  weights each point as the parent element's rule does: C3D20's 27 points (3-point Gauss-Legendre in each
+  direction, the first fastest) by the product of 5/9, 8/9, 5/9; the 8 points of C3D8 or C3D20R equally.
 * **Facet force**: ccx 2.20 prints no force of a SPRINGA element (``*EL PRINT`` S and E print empty blocks for
   it, measured), so the force of each contact strut comes from its two nodes' printed displacements through the
   strut's own force-elongation table (the deck's ``*SPRING, NONLINEAR`` table: ccx interpolates it linearly and
@@ -106,9 +106,23 @@ def element_pressure(stress_block) -> tuple[np.ndarray, np.ndarray]:
     """(element ids (E,), mean hydrostatic pressure -tr(sigma)/3 over each element's integration points, MPa)
     of an *EL PRINT S block (rows: element, integration point, sxx, syy, szz, sxy, sxz, syz)."""
     ids = np.asarray(stress_block.node_ids)
-    p = -np.asarray(stress_block.values)[:, 1:4].sum(1) / 3.0
+    values = np.asarray(stress_block.values)
+    p = -values[:, 1:4].sum(1) / 3.0
     elems, inv = np.unique(ids, return_inverse=True)
-    return elems, np.bincount(inv, weights=p) / np.bincount(inv)
+    w = integration_weights(values[:, 0].astype(np.int64), np.bincount(inv)[inv])
+    return elems, np.bincount(inv, weights=p * w) / np.bincount(inv, weights=w)
+
+
+#: 3-point Gauss-Legendre weights (C3D20's rule in each direction)
+GAUSS3_WEIGHTS = np.array([5.0, 8.0, 5.0]) / 9.0
+
+
+def integration_weights(point: np.ndarray, points_per_element: np.ndarray) -> np.ndarray:
+    """Weight of each printed integration point (1-based `point` of an element with `points_per_element`
+    points) in its parent element's rule: the 3 x 3 x 3 Gauss product for 27 points, 1 otherwise."""
+    k = np.asarray(point) - 1
+    w = GAUSS3_WEIGHTS[k % 3] * GAUSS3_WEIGHTS[(k // 3) % 3] * GAUSS3_WEIGHTS[k // 9 % 3]
+    return np.where(np.asarray(points_per_element) == 27, w, 1.0)
 
 
 def nucleus_pressure(fe: FEModel, prints, time: float) -> pd.DataFrame:
