@@ -32,11 +32,11 @@ def _step(body: str) -> str:
 @needs_ccx
 @pytest.mark.parametrize("etype", ["C3D20R", "C3D20"])
 def test_nucleus_pressure_of_a_confined_two_layer_block_is_the_volume_weighted_closed_form(tmp_path, etype):
-    # A 10 x 10 mm column of two 20-node layers (the model's C3D20R; C3D20, the load deck's), 4 mm (nu 0.49, nucleus-like) under 6 mm (nu 0.3), rollers on
-    # every side and the bottom, 0.5 MPa on top (linear, confined compression): in each layer sigma_zz = -q and
-    # sigma_xx = sigma_yy = -q nu / (1 - nu), so p = q (1 + nu) / (3 (1 - nu)): 0.48693 and 0.30952 MPa.
-    # Volume-weighted over the set: (4 * 0.48693 + 6 * 0.30952) / 10 = 0.38048 MPa (a plain mean of the two
-    # elements would give 0.39822).
+    # A 10 x 10 mm column of two 20-node layers (the model's C3D20R; C3D20, the load deck's), 4 mm (nu 0.49,
+    # nucleus-like) under 6 mm (nu 0.3), rollers on every side and the bottom, 0.5 MPa on top (linear, confined
+    # compression): in each layer sigma_zz = -q and sigma_xx = sigma_yy = -q nu / (1 - nu), so p = q (1 + nu) / (3
+    # (1 - nu)): 0.48693 and 0.30952 MPa. Volume-weighted over the set: (4 * 0.48693 + 6 * 0.30952) / 10 = 0.38048
+    # MPa (a plain mean of the two elements would give 0.39822).
     q = 0.5
     nodes, hexes = hex_grid([0.0, 10.0], [0.0, 10.0], [0.0, 4.0, 10.0])
     mid, hex20, _ = quadratic_hexes(nodes, hexes)

@@ -220,15 +220,16 @@ def model_load_text(
     guided: bool = False,
     **step_kw,
 ) -> str:
-    """A complete, runnable pure-moment deck of a whole exported model (`spinecohort.fe.export.fe_model`,
-    nodes in template order): the model data without the arches' skins (`arch_skin_free`: each arch acts through
-    its connector truss) and with a fully integrated nucleus (`fully_integrated_nucleus`), the pelvis fixed (node
-    set ``PELVIS``, else the S1 plate), the body of vertebra `top` rigid (its hex nodes; its arch hangs on it by the connectors: a rigid body holding shell nodes slowed ccx's
-    Newton iterations to a stall) and loaded with `moment_nmm` (N.mm) about its anatomical axis of `case`, one
-    NLGEOM step with the ROM's convergence controls (`step_kw`: those of `pure_moment_text`; default
-    `MODEL_STEP_DEFAULTS`, first increment 25 N.mm, increments growing by `MODEL_TIME_INCREMENTATION`), ROT NODE
-    rotations (rad) and the top's rigid nodes' U and RF (`spinecohort.rom.reaction.moment_on_top`) printed to the
-    .dat file and, if node_file, displacements to the .frd file; the load's axis in a comment (`load_axis`).
+    """A complete, runnable pure-moment deck of a whole exported model (`spinecohort.fe.export.fe_model`, nodes in
+    template order): the model data without the arches' skins (`arch_skin_free`: each arch acts through its
+    connector truss) and with a fully integrated nucleus (`fully_integrated_nucleus`), the pelvis fixed (node set
+    ``PELVIS``, else the S1 plate), the body of vertebra `top` rigid (its hex nodes; its arch hangs on it by the
+    connectors: a rigid body holding shell nodes slowed ccx's Newton iterations to a stall) and loaded with
+    `moment_nmm` (N.mm) about its anatomical axis of `case`, one NLGEOM step with the ROM's convergence controls
+    (`step_kw`: those of `pure_moment_text`; default `MODEL_STEP_DEFAULTS`, first increment 25 N.mm, increments
+    growing by `MODEL_TIME_INCREMENTATION`), ROT NODE rotations (rad) and the top's rigid nodes' U and RF
+    (`spinecohort.rom.reaction.moment_on_top`) printed to the .dat file and, if node_file, displacements to the .frd
+    file; the load's axis in a comment (`load_axis`).
     guided: the top turns about the load's axis only (two *EQUATIONs on its ROT NODE, `guide_equations`), as the
     ROM's lumbar model: free, the whole spine's extension needs 17-18 Newton iterations an increment and stalls.
     Solve with ``ccx -i <job>``."""
